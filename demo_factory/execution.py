@@ -1,0 +1,130 @@
+"""Drives the simulated arm through keyframes: planned or Cartesian moves, then the gripper.
+
+Used by the generator (expert keyframes) and by evaluation (predicted keyframes) alike, so a
+policy's keyframes are executed exactly as the expert's are.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+import pybullet as p
+
+from demo_factory.planning import JointPlanner, PlanResult
+from demo_factory.sim.kinematics import Kinematics, slerp_poses
+from demo_factory.sim.world import TIME_STEP, World
+from demo_factory.tasks.base import KeyframeTarget
+
+JOINT_SPEED = 1.2  # rad/s, the fastest joint on a planned path
+CARTESIAN_SPEED = 0.12  # m/s along straight-line moves
+CARTESIAN_STEP = 0.005  # metres between IK waypoints on a straight line
+MAX_JOINT_JUMP = 0.25  # rad between consecutive straight-line IK solutions (else: not a straight move)
+SETTLE_STEPS = 120
+GRIPPER_STEPS = (24, 144)  # at least / at most this many steps to open or close
+
+
+@dataclass
+class TransitionOutcome:
+    """What happened when one keyframe was executed."""
+
+    ok: bool
+    reason: str | None = None  # "unreachable", "planning", "cartesian"
+    plan: PlanResult | None = None
+
+
+@dataclass
+class KeyframeExecutor:
+    """Executes keyframe targets in a world, with the seeded planner for planned moves."""
+
+    world: World
+    kinematics: Kinematics
+    planner: JointPlanner
+    episode_seed: int
+    graspable: list[int] = field(default_factory=list)
+
+    def execute(self, target: KeyframeTarget, transition: int) -> TransitionOutcome:
+        """Reach ``target`` (planned, Cartesian or in place), then apply its gripper command."""
+        outcome = TransitionOutcome(ok=True)
+        if target.motion == "planned":
+            outcome = self._planned(np.asarray(target.pose), transition)
+        elif target.motion == "cartesian":
+            outcome = self._cartesian(np.asarray(target.pose))
+        if outcome.ok and target.gripper_open != self.world.gripper_command:
+            self._actuate_gripper(target.gripper_open)
+        return outcome
+
+    # -- motions --------------------------------------------------------------------------
+    def _planned(self, pose: np.ndarray, transition: int) -> TransitionOutcome:
+        start = self.world.joint_positions()
+        goal = self.kinematics.inverse(pose, seed=start)
+        if goal is None:
+            return TransitionOutcome(False, "unreachable")
+        plan = self.planner.plan(
+            self.world, start, goal, self.episode_seed, transition, grasped=self._grasped_relative()
+        )
+        if not plan.ok:
+            return TransitionOutcome(False, "planning", plan)
+        # Planning children moved their own copies of the robot, never this one.
+        self._follow(plan.path, JOINT_SPEED)
+        return TransitionOutcome(True, None, plan)
+
+    def _cartesian(self, pose: np.ndarray) -> TransitionOutcome:
+        start_pose = self.world.gripper_pose()
+        distance = float(np.linalg.norm(pose[:3] - start_pose[:3]))
+        n = max(1, int(np.ceil(distance / CARTESIAN_STEP)))
+        q = self.world.joint_positions()
+        waypoints = [q]
+        for waypoint_pose in slerp_poses(start_pose, pose, n):
+            q_next = self.kinematics.inverse(waypoint_pose, seed=waypoints[-1])
+            if q_next is None or np.max(np.abs(q_next - waypoints[-1])) > MAX_JOINT_JUMP:
+                return TransitionOutcome(False, "cartesian")
+            waypoints.append(q_next)
+        self._follow(waypoints, speed=None, segment_seconds=max(distance / n / CARTESIAN_SPEED, TIME_STEP))
+        return TransitionOutcome(True)
+
+    def _follow(self, waypoints, speed: float | None, segment_seconds: float | None = None) -> None:
+        """Track a joint path with the position controllers, then let the arm settle on its end."""
+        world = self.world
+        for a, b in zip(waypoints[:-1], waypoints[1:]):
+            duration = segment_seconds if speed is None else float(np.max(np.abs(b - a))) / speed
+            steps = max(1, int(np.ceil(duration / TIME_STEP)))
+            velocity = (b - a) / (steps * TIME_STEP)
+            for i in range(1, steps + 1):
+                world.command_arm(a + (b - a) * (i / steps), velocity)
+                world.step()
+        goal = waypoints[-1]
+        world.command_arm(goal)
+        for _ in range(SETTLE_STEPS):
+            if np.max(np.abs(world.joint_positions() - goal)) < 1e-3 and np.max(np.abs(world.joint_velocities())) < 1e-2:
+                break
+            world.step()
+
+    def _actuate_gripper(self, gripper_open: float) -> None:
+        world = self.world
+        world.set_gripper(gripper_open)
+        lo, hi = GRIPPER_STEPS
+        previous = world.finger_width()
+        for i in range(hi):
+            world.step()
+            width = world.finger_width()
+            if i >= lo and abs(width - previous) < 1e-5:
+                break
+            previous = width
+        if gripper_open:
+            world.grasped = None
+        else:
+            body = world.held_object(self.graspable)
+            world.grasped = body
+
+    def _grasped_relative(self):
+        """The held body and its pose in the grasp frame, for the planner to carry it along."""
+        body = self.world.grasped
+        if body is None:
+            return None
+        client = self.world.client
+        grasp = self.world.gripper_pose()
+        obj_pos, obj_orn = p.getBasePositionAndOrientation(body, physicsClientId=client)
+        inv_pos, inv_orn = p.invertTransform(grasp[:3].tolist(), grasp[3:].tolist())
+        rel_pos, rel_orn = p.multiplyTransforms(inv_pos, inv_orn, obj_pos, obj_orn)
+        return body, rel_pos, rel_orn

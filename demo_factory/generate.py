@@ -1,0 +1,199 @@
+"""Generates expert episodes: scene → expert keyframes → planned execution in physics → MCAP.
+
+An episode is fully determined by ``(task, variation, episode_seed)`` (plus the camera settings):
+the same inputs give a byte-identical recording, in any process and in any order.
+"""
+
+from __future__ import annotations
+
+import multiprocessing
+import time
+import zlib
+from dataclasses import dataclass, field
+from importlib import metadata
+from pathlib import Path
+
+import numpy as np
+
+from demo_factory.execution import KeyframeExecutor
+from demo_factory.planning import JointPlanner
+from demo_factory.record import FORMAT_VERSION, EpisodeInfo, EpisodeWriter, Frame, Keyframe, RobotState
+from demo_factory.sim import DEFAULT_CAMERAS, Kinematics, World
+from demo_factory.sim.world import HOME
+from demo_factory.tasks import SPLITS, get_task
+
+SETTLE_BEFORE_STEPS = 48  # let the scene come to rest before the first observation
+SETTLE_AFTER_STEPS = 120  # "stable for a moment" before the success check
+VERSIONED_PACKAGES = ("demo_factory", "pybullet", "ompl", "mcap", "numpy")
+
+
+@dataclass(frozen=True)
+class EpisodeRequest:
+    """One episode to generate."""
+
+    task: str
+    split: str
+    variation_id: int
+    episode_seed: int
+    image_size: tuple[int, int] = (128, 128)
+    dense_fps: float = 0.0
+
+    @property
+    def filename(self) -> str:
+        return f"{self.task}_{self.split}_var{self.variation_id:04d}_seed{self.episode_seed:010d}.mcap"
+
+
+@dataclass
+class EpisodeOutcome:
+    """What came of one request (kept or failed, why, and how long it took)."""
+
+    request: EpisodeRequest
+    kept: bool
+    reason: str | None  # failure reason: "planning", "unreachable", "cartesian", "task_failed"
+    path: str | None
+    keyframes: int
+    attempts_per_transition: list[int] = field(default_factory=list)
+    planning_seconds: list[float] = field(default_factory=list)  # wall-clock per planned transition
+    seconds: float = 0.0
+    resumed: bool = False
+
+
+def episode_seed(base_seed: int, task: str, split: str, index: int) -> int:
+    """The seed of the ``index``-th episode of a job: a pure function of the job's parameters."""
+    entropy = [base_seed, zlib.crc32(task.encode()), SPLITS.index(split), index]
+    return int(np.random.SeedSequence(entropy).generate_state(1)[0])
+
+
+def job_requests(task: str, split: str, episodes: int, base_seed: int, **settings) -> list[EpisodeRequest]:
+    """The requests of a job: episode i uses the split's variation i mod n and its own seed."""
+    variations = get_task(task).split_variations(split)
+    return [
+        EpisodeRequest(task, split, variations[i % len(variations)].id, episode_seed(base_seed, task, split, i), **settings)
+        for i in range(episodes)
+    ]
+
+
+def library_versions() -> dict[str, str]:
+    return {name: metadata.version(name) for name in VERSIONED_PACKAGES}
+
+
+def _observe(world: World, keyframe_index: int, is_keyframe: bool, is_dense: bool) -> Frame:
+    return Frame(
+        time_ns=world.time_ns,
+        is_keyframe=is_keyframe,
+        is_dense=is_dense,
+        keyframe_index=keyframe_index,
+        robot=RobotState(
+            joint_positions=world.joint_positions(),
+            gripper_pose=world.gripper_pose(),
+            gripper_open=world.gripper_command,
+            finger_width=world.finger_width(),
+        ),
+        cameras=world.render_cameras(),
+    )
+
+
+def run_episode(request: EpisodeRequest, out_dir: str | Path | None) -> EpisodeOutcome:
+    """Generate one episode; with ``out_dir`` record it there (kept only if the task succeeds)."""
+    began = time.perf_counter()
+    task = get_task(request.task)
+    variation = task.variation(request.variation_id)
+    instruction = task.instruction(variation, request.episode_seed)
+    world = World(DEFAULT_CAMERAS, request.image_size)
+    kinematics = Kinematics()
+    writer = None
+    try:
+        world.reset_arm(HOME, gripper_open=1.0 if task.gripper_starts_open else 0.0)
+        task.build_scene(world, variation, np.random.default_rng(request.episode_seed))
+        world.step(SETTLE_BEFORE_STEPS)
+        world.step_count = 0  # the episode's clock starts once the scene is at rest
+        world.step_callbacks.append(task.on_step)
+        info = EpisodeInfo(
+            format_version=FORMAT_VERSION, task=task.name, split=request.split, variation_id=variation.id,
+            variation=list(variation.colours), episode_seed=request.episode_seed, instruction=instruction,
+            cameras=[c.name for c in DEFAULT_CAMERAS], image_size=tuple(request.image_size),
+            dense_fps=float(request.dense_fps), extra=task.scene_facts(),
+        )
+        if out_dir is not None:
+            writer = EpisodeWriter(Path(out_dir) / request.filename, info)
+        reached = {"index": 0, "last_step": -1}
+        period = int(round(240 / request.dense_fps)) if request.dense_fps > 0 else 0
+
+        def record_dense(w: World) -> None:
+            if w.step_count % period == 0 and w.step_count != reached["last_step"]:
+                writer.write_frame(_observe(w, reached["index"], is_keyframe=False, is_dense=True))
+                reached["last_step"] = w.step_count
+
+        def record_keyframe(index: int, target_pose, gripper_open: float, motion: str) -> None:
+            reached["index"] = index
+            if writer is None:
+                return
+            dense = period > 0 and world.step_count % period == 0
+            frame = _observe(world, index, is_keyframe=True, is_dense=dense)
+            writer.write_frame(frame)
+            writer.write_keyframe(Keyframe(index, world.time_ns, np.asarray(target_pose), gripper_open,
+                                           frame.robot.gripper_pose, motion))
+            reached["last_step"] = world.step_count
+
+        if writer is not None and period:
+            world.step_callbacks.append(record_dense)
+        start_pose = world.gripper_pose()
+        record_keyframe(0, start_pose, world.gripper_command, "start")
+        executor = KeyframeExecutor(world, kinematics, JointPlanner(), request.episode_seed, task.graspable_bodies())
+        targets = task.expert(world)
+        attempts_log, attempts_used, planning_seconds = [], [], []
+        reason = None
+        for index, target in enumerate(targets, start=1):
+            outcome = executor.execute(target, transition=index)
+            if outcome.plan is not None:
+                attempts_log += outcome.plan.attempts
+                attempts_used.append(len(outcome.plan.attempts))
+                planning_seconds.append(sum(outcome.plan.solve_seconds))
+            if not outcome.ok:
+                reason = outcome.reason
+                break
+            record_keyframe(index, target.pose, target.gripper_open, target.motion)
+        if reason is None:
+            world.step(SETTLE_AFTER_STEPS)
+            if not task.success(world):
+                reason = "task_failed"
+        path = None
+        if writer is not None:
+            if reason is None:
+                path = str(writer.close(world.time_ns, True, attempts_log, library_versions()))
+            else:
+                writer.abort()
+        return EpisodeOutcome(request, reason is None, reason, path, len(targets) + 1, attempts_used,
+                              planning_seconds, time.perf_counter() - began)
+    except BaseException:
+        if writer is not None:
+            writer.abort()
+        raise
+    finally:
+        world.close()
+        kinematics.close()
+
+
+def _run_in_worker(args) -> EpisodeOutcome:
+    request, out_dir = args
+    return run_episode(request, out_dir)
+
+
+def run_requests(requests: list[EpisodeRequest], out_dir: str | Path | None, workers: int = 1, progress=None):
+    """Generate every request (in parallel processes when ``workers`` > 1), yielding outcomes in order.
+
+    A request whose recording already exists in ``out_dir`` is not generated again.
+    """
+    todo = []
+    for request in requests:
+        existing = Path(out_dir) / request.filename if out_dir is not None else None
+        if existing is not None and existing.exists():
+            yield EpisodeOutcome(request, True, None, str(existing), 0, resumed=True)
+        else:
+            todo.append((request, out_dir))
+    if workers <= 1:
+        for item in todo:
+            yield _run_in_worker(item)
+        return
+    with multiprocessing.get_context("fork").Pool(workers, maxtasksperchild=20) as pool:
+        yield from pool.imap(_run_in_worker, todo)

@@ -1,0 +1,186 @@
+"""OMPL RRTConnect in the Panda's 7-D joint space with PyBullet collision checking.
+
+Determinism. OMPL seeds every random generator from one process-wide seed that can be set only
+once, before the first planner is set up; later plans in the same process continue that sequence.
+So that attempt ``i`` of a transition depends on its own seed and nothing else, each attempt runs
+in a forked child of the simulation process: the child sets its seed, plans against its private
+copy of the PyBullet world (it may move the robot freely there) and sends the path back through a
+pipe. The parent never creates an OMPL planner, so every child starts from a pristine generator.
+"""
+
+from __future__ import annotations
+
+import os
+import pickle
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+import pybullet as p
+
+from demo_factory.record.episode import PlannerAttempt
+from demo_factory.sim.world import ARM_JOINTS, GRASP_LINK, JOINT_LOWER, JOINT_UPPER, World
+
+MAX_ATTEMPTS = 10
+# Robot link pairs that can collide with each other (adjacent and hand/finger pairs never do).
+SELF_COLLISION_PAIRS = tuple(
+    (a, b) for a in (-1, 0, 1, 2, 3) for b in (5, 6, 8, 9, 10) if b - a > 2
+)
+
+
+def attempt_seed(episode_seed: int, transition: int, attempt: int) -> int:
+    """The OMPL seed of one attempt: a pure function of the episode seed, transition and attempt."""
+    state = np.random.SeedSequence([episode_seed, transition, attempt]).generate_state(1)[0]
+    return int(state % (2**31 - 1)) + 1  # OMPL wants a positive seed
+
+
+@dataclass
+class PlanResult:
+    """The outcome of up to ``MAX_ATTEMPTS`` attempts for one transition."""
+
+    path: list[np.ndarray] | None  # joint waypoints from start to goal, None when every attempt failed
+    attempts: list[PlannerAttempt] = field(default_factory=list)
+    solve_seconds: list[float] = field(default_factory=list)  # wall-clock per attempt (not recorded in MCAP)
+
+    @property
+    def ok(self) -> bool:
+        return self.path is not None
+
+
+class CollisionChecker:
+    """Robot-vs-scene and robot self-collision queries on a world whose robot may be moved freely."""
+
+    def __init__(self, world: World, margin: float = 0.003, ignore_bodies=(), grasped: tuple | None = None):
+        self.world = world
+        self.client = world.client
+        self.robot = world.robot
+        self.margin = margin
+        self.ignore = set(ignore_bodies)
+        self.grasped = grasped  # (body, position_in_grasp, orientation_in_grasp)
+        if grasped is not None:
+            self.ignore.add(grasped[0])
+
+    def set_configuration(self, q) -> None:
+        for j, v in zip(ARM_JOINTS, q):
+            p.resetJointState(self.robot, j, float(v), physicsClientId=self.client)
+        if self.grasped is not None:
+            body, pos, orn = self.grasped
+            state = p.getLinkState(self.robot, GRASP_LINK, computeForwardKinematics=True, physicsClientId=self.client)
+            wpos, worn = p.multiplyTransforms(state[4], state[5], pos, orn)
+            p.resetBasePositionAndOrientation(body, wpos, worn, physicsClientId=self.client)
+
+    def in_collision(self) -> bool:
+        p.performCollisionDetection(physicsClientId=self.client)
+        for contact in p.getContactPoints(bodyA=self.robot, physicsClientId=self.client):
+            other = contact[2]
+            if other != self.robot and other not in self.ignore and contact[8] < self.margin:
+                return True
+        if self.grasped is not None:
+            body = self.grasped[0]
+            for contact in p.getContactPoints(bodyA=body, physicsClientId=self.client):
+                if contact[2] != self.robot and contact[8] < self.margin:
+                    return True
+        for a, b in SELF_COLLISION_PAIRS:
+            if p.getClosestPoints(self.robot, self.robot, 0.0, a, b, physicsClientId=self.client):
+                return True
+        return False
+
+    def valid(self, q) -> bool:
+        q = np.asarray(q)
+        if np.any(q < JOINT_LOWER) or np.any(q > JOINT_UPPER):
+            return False
+        self.set_configuration(q)
+        return not self.in_collision()
+
+    def path_valid(self, path, max_step: float = 0.01) -> bool:
+        """Check a joint path densely (steps of at most ``max_step`` rad per joint)."""
+        for a, b in zip(path[:-1], path[1:]):
+            n = max(1, int(np.ceil(np.max(np.abs(b - a)) / max_step)))
+            for f in np.linspace(0.0, 1.0, n + 1):
+                if not self.valid(a + f * (b - a)):
+                    return False
+        return True
+
+
+class JointPlanner:
+    """Plans collision-free joint paths with up to ``MAX_ATTEMPTS`` seeded RRTConnect attempts."""
+
+    def __init__(self, timeout: float = 2.0, resolution: float = 0.002, margin: float = 0.003):
+        self.timeout = timeout
+        self.resolution = resolution  # OMPL validity-checking resolution (fraction of the space extent)
+        self.margin = margin
+
+    def plan(self, world: World, start, goal, episode_seed: int, transition: int, grasped=None,
+             ignore_bodies=(), max_attempts: int = MAX_ATTEMPTS) -> PlanResult:
+        """Plan from ``start`` to ``goal`` joints; stops at the first exact solution."""
+        result = PlanResult(path=None)
+        for attempt in range(max_attempts):
+            seed = attempt_seed(episode_seed, transition, attempt)
+            began = time.perf_counter()
+            status, path = self._attempt_in_child(world, start, goal, seed, grasped, ignore_bodies)
+            result.solve_seconds.append(time.perf_counter() - began)
+            length = float(sum(np.linalg.norm(b - a) for a, b in zip(path[:-1], path[1:]))) if path else 0.0
+            result.attempts.append(PlannerAttempt(transition, attempt, seed, status, round(length, 6)))
+            if status == "exact":
+                result.path = path
+                break
+        return result
+
+    def _attempt_in_child(self, world, start, goal, seed, grasped, ignore_bodies):
+        read_fd, write_fd = os.pipe()
+        pid = os.fork()
+        if pid == 0:  # child: plan, report, and leave without running any parent clean-up
+            os.close(read_fd)
+            try:
+                outcome = self._solve(world, start, goal, seed, grasped, ignore_bodies)
+            except BaseException as exc:  # report, never hang the parent
+                outcome = (f"error: {type(exc).__name__}: {exc}", None)
+            with os.fdopen(write_fd, "wb") as pipe:
+                pickle.dump(outcome, pipe)
+            os._exit(0)
+        os.close(write_fd)
+        with os.fdopen(read_fd, "rb") as pipe:
+            data = pipe.read()
+        os.waitpid(pid, 0)
+        if not data:
+            return "error: planner process died", None
+        return pickle.loads(data)
+
+    def _solve(self, world, start, goal, seed, grasped, ignore_bodies):
+        from ompl import base as ob
+        from ompl import geometric as og
+        from ompl import util as ou
+
+        ou.setLogLevel(ou.LOG_ERROR)
+        ou.RNG.setSeed(seed)
+        checker = CollisionChecker(world, self.margin, ignore_bodies, grasped)
+        space = ob.RealVectorStateSpace(7)
+        bounds = ob.RealVectorBounds(7)
+        for i in range(7):
+            bounds.setLow(i, float(JOINT_LOWER[i]))
+            bounds.setHigh(i, float(JOINT_UPPER[i]))
+        space.setBounds(bounds)
+        setup = og.SimpleSetup(space)
+        setup.setStateValidityChecker(lambda state: checker.valid([state[i] for i in range(7)]))
+        si = setup.getSpaceInformation()
+        si.setStateValidityCheckingResolution(self.resolution)
+        setup.setPlanner(og.RRTConnect(si))
+        start_state, goal_state = si.allocState(), si.allocState()
+        for i in range(7):
+            start_state[i] = float(start[i])
+            goal_state[i] = float(goal[i])
+        if not checker.valid(start):
+            return "invalid_start", None
+        if not checker.valid(goal):
+            return "invalid_goal", None
+        setup.setStartAndGoalStates(start_state, goal_state)
+        setup.solve(self.timeout)
+        if not setup.haveExactSolutionPath():
+            return "timeout", None
+        setup.simplifySolution()
+        path = setup.getSolutionPath()
+        waypoints = [np.array([path.getState(k)[i] for i in range(7)]) for k in range(path.getStateCount())]
+        # Belt and braces: re-check densely, so a path through a thin obstacle is never returned.
+        if not checker.path_valid(waypoints):
+            return "invalid_path", None
+        return "exact", waypoints

@@ -1,0 +1,118 @@
+"""Typed episodes: what the recorder writes and the reader yields (the converter's input).
+
+Conventions (the data contract shared by recorder, reader, converter and policy):
+- Poses are ``[x, y, z, qx, qy, qz, qw]`` in the world frame (= robot base frame, metres).
+- ``gripper_open`` is 1.0 for an open gripper and 0.0 for a closed one.
+- Camera intrinsics are ``(fx, fy, cx, cy)`` in pixels with pixel centres at integer coordinates;
+  extrinsics are the 4x4 world-from-camera transform in OpenCV axes (x right, y down, z forward).
+  A pixel (u = column, v = row) with metric depth z lies at
+  ``T_world_cam @ [(u - cx) * z / fx, (v - cy) * z / fy, z, 1]``.
+- Depth is metric z-depth in metres; 0 where nothing was hit (background beyond the far plane).
+- Segmentation holds PyBullet body ids, -1 for background.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+FORMAT_VERSION = 1
+
+
+@dataclass
+class CameraObservation:
+    """One camera's images at one frame."""
+
+    rgb: np.ndarray  # (H, W, 3) uint8
+    depth: np.ndarray  # (H, W) float32 metres (millimetre precision after recording)
+    segmentation: np.ndarray  # (H, W) int32 body ids, -1 background
+    intrinsics: np.ndarray  # (4,) float64: fx, fy, cx, cy
+    extrinsics: np.ndarray  # (4, 4) float64 world-from-camera, OpenCV axes
+
+
+@dataclass
+class RobotState:
+    """Proprioception at one frame."""
+
+    joint_positions: np.ndarray  # (7,) radians
+    gripper_pose: np.ndarray  # (7,) x, y, z, qx, qy, qz, qw of the grasp frame
+    gripper_open: float  # 1.0 open, 0.0 closed (the last command)
+    finger_width: float  # metres between the fingers
+
+
+@dataclass
+class Frame:
+    """Everything observed at one instant of simulated time."""
+
+    time_ns: int  # simulation time since the episode start
+    is_keyframe: bool  # observation taken when keyframe ``keyframe_index`` was reached
+    is_dense: bool  # observation on the fixed-rate dense clock
+    keyframe_index: int  # keyframe reached at or before this frame
+    robot: RobotState
+    cameras: dict[str, CameraObservation]
+
+
+@dataclass
+class Keyframe:
+    """A macro-step of the expert: the pose it targets and the gripper command.
+
+    Keyframe 0 is the initial state (target = start pose); keyframe k > 0 is the expert's k-th
+    target. The observation recorded when keyframe k is reached is the frame with
+    ``is_keyframe and keyframe_index == k``; its action is keyframe k+1 (the last repeats itself).
+    """
+
+    index: int
+    time_ns: int  # when it was reached
+    target_pose: np.ndarray  # (7,)
+    gripper_open: float  # command: 1.0 open, 0.0 closed
+    reached_pose: np.ndarray  # (7,) the grasp-frame pose actually reached
+    motion: str  # "start", "planned", "cartesian" or "gripper"
+
+
+@dataclass
+class PlannerAttempt:
+    """One seeded OMPL attempt for one keyframe transition (no wall-clock figures: see recorder)."""
+
+    keyframe_index: int
+    attempt: int  # 0..9
+    seed: int
+    status: str  # "exact", "approximate", "timeout", "invalid_start", "invalid_goal", ...
+    path_length: float  # joint-space length in radians, 0 when no path
+
+
+@dataclass
+class EpisodeInfo:
+    """Metadata written at the start and completed at the end of the recording."""
+
+    format_version: int
+    task: str
+    split: str
+    variation_id: int
+    variation: list[str]  # e.g. the colour sequence
+    episode_seed: int
+    instruction: str
+    cameras: list[str]
+    image_size: tuple[int, int]  # (height, width)
+    dense_fps: float  # 0 when no dense frames were recorded
+    success: bool = False
+    planner_attempts: list[PlannerAttempt] = field(default_factory=list)
+    versions: dict[str, str] = field(default_factory=dict)
+    extra: dict = field(default_factory=dict)  # task-specific scene facts (object colours, ...)
+
+
+@dataclass
+class Episode:
+    """A whole recorded episode."""
+
+    info: EpisodeInfo
+    keyframes: list[Keyframe]
+    frames: list[Frame]
+
+    def keyframe_frames(self) -> list[Frame]:
+        """The observation frames at keyframes, in keyframe order."""
+        return [f for f in self.frames if f.is_keyframe]
+
+    def dense_frames(self) -> list[Frame]:
+        """The fixed-rate dense frames, in time order (empty if none were recorded)."""
+        return [f for f in self.frames if f.is_dense]

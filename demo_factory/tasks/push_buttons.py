@@ -1,0 +1,122 @@
+"""Push buttons: press coloured buttons in the instructed order (HiveFormer's multi-variation task)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pybullet as p
+
+from demo_factory.sim.world import TOP_DOWN
+from demo_factory.tasks.base import KeyframeTarget, Task, spread_positions
+from demo_factory.tasks.palette import PUSH_BUTTON_COLOURS, rgba
+from demo_factory.tasks.variations import Variation
+
+N_BUTTONS = 3
+BASE_HALF = (0.035, 0.035, 0.01)  # grey housing on the table
+CAP_RADIUS, CAP_HALF_HEIGHT = 0.02, 0.008
+TRAVEL = 0.012  # how far the cap can be pushed in
+PRESSED_AT = -0.006  # cap displacement that counts as a press
+PRESS_DEPTH = 0.009  # how far the expert pushes the cap
+APPROACH_HEIGHT = 0.06  # above the cap, before pressing and after
+WORKSPACE = ((0.38, 0.62), (-0.22, 0.22))  # x and y ranges of button centres
+MIN_SPACING = 0.12
+
+
+def _sequence_text(colours: tuple[str, ...], fmt: str, then: str, last_then: str | None = None) -> str:
+    parts = [fmt.format(c) for c in colours]
+    if len(parts) == 1:
+        return parts[0]
+    last_then = last_then or then
+    return then.join(parts[:-1]) + last_then + parts[-1]
+
+
+class PushButtons(Task):
+    name = "push_buttons"
+    description = "Push 1-3 of three coloured buttons in the instructed order."
+    category = "long term"
+    palette = PUSH_BUTTON_COLOURS
+    split_seed = 20220101
+    gripper_starts_open = False
+
+    def synthetic_instructions(self, variation: Variation) -> list[str]:
+        c = variation.colours
+        first, rest = c[0], c[1:]
+        texts = [
+            "push the " + _sequence_text(c, "{} button", ", then the "),
+            "press the " + _sequence_text(c, "{} button", " and then the "),
+            f"push the {first} button" + "".join(f", then push the {x} one" for x in rest),
+        ]
+        if len(c) > 1:
+            texts.append("press the " + ", ".join(c[:-1]) + f" and {c[-1]} buttons in that order")
+        else:
+            texts.append(f"press down the {first} button")
+        return texts
+
+    # -- scene ----------------------------------------------------------------------------
+    def build_scene(self, world, variation: Variation, rng: np.random.Generator) -> None:
+        distractors = [x for x in self.palette if x not in variation.colours]
+        colours = list(variation.colours) + list(rng.choice(distractors, N_BUTTONS - len(variation.colours), replace=False))
+        colours = [colours[i] for i in rng.permutation(N_BUTTONS)]
+        positions = spread_positions(rng, N_BUTTONS, WORKSPACE, MIN_SPACING)
+        self.world = world
+        self.variation = variation
+        self.buttons = {colour: _make_button(world, pos, colour) for colour, pos in zip(colours, positions)}
+        self.positions = {colour: pos for colour, pos in zip(colours, positions)}
+        self.pressed_order: list[str] = []
+        self._down = {colour: False for colour in colours}
+
+    def cap_top(self, colour: str) -> np.ndarray:
+        x, y = self.positions[colour]
+        return np.array([x, y, 2 * BASE_HALF[2] + 2 * CAP_HALF_HEIGHT])
+
+    def expert(self, world) -> list[KeyframeTarget]:
+        tip = world.fingertip_offset()
+        keyframes = []
+        for colour in self.variation.colours:
+            top = self.cap_top(colour)
+            above = (*(top + [0, 0, APPROACH_HEIGHT + tip]), *TOP_DOWN)
+            pressed = (*(top + [0, 0, tip - PRESS_DEPTH]), *TOP_DOWN)
+            keyframes += [
+                KeyframeTarget(above, 0.0, "planned"),
+                KeyframeTarget(pressed, 0.0, "cartesian"),
+                KeyframeTarget(above, 0.0, "cartesian"),
+            ]
+        return keyframes
+
+    def on_step(self, world) -> None:
+        for colour, body in self.buttons.items():
+            down = p.getJointState(body, 0, physicsClientId=world.client)[0] < PRESSED_AT
+            if down and not self._down[colour]:
+                self.pressed_order.append(colour)
+            self._down[colour] = down
+
+    def success(self, world) -> bool:
+        return tuple(self.pressed_order) == self.variation.colours
+
+    def scene_facts(self) -> dict:
+        return {
+            "buttons": {c: [round(float(v), 6) for v in pos] for c, pos in self.positions.items()},
+            "pressed_order": list(self.pressed_order),
+        }
+
+
+
+def _make_button(world, xy, colour: str) -> int:
+    """A fixed housing with a sprung cap on a prismatic joint; the cap is pressed when pushed in."""
+    client = world.client
+    base_col = p.createCollisionShape(p.GEOM_BOX, halfExtents=BASE_HALF, physicsClientId=client)
+    base_vis = p.createVisualShape(p.GEOM_BOX, halfExtents=BASE_HALF, rgbaColor=(0.25, 0.25, 0.25, 1), physicsClientId=client)
+    cap_col = p.createCollisionShape(p.GEOM_CYLINDER, radius=CAP_RADIUS, height=2 * CAP_HALF_HEIGHT, physicsClientId=client)
+    cap_vis = p.createVisualShape(p.GEOM_CYLINDER, radius=CAP_RADIUS, length=2 * CAP_HALF_HEIGHT, rgbaColor=rgba(colour), physicsClientId=client)
+    body = p.createMultiBody(
+        baseMass=0, baseCollisionShapeIndex=base_col, baseVisualShapeIndex=base_vis,
+        basePosition=(float(xy[0]), float(xy[1]), BASE_HALF[2]),
+        linkMasses=[0.05], linkCollisionShapeIndices=[cap_col], linkVisualShapeIndices=[cap_vis],
+        linkPositions=[(0, 0, BASE_HALF[2] + CAP_HALF_HEIGHT)], linkOrientations=[(0, 0, 0, 1)],
+        linkInertialFramePositions=[(0, 0, 0)], linkInertialFrameOrientations=[(0, 0, 0, 1)],
+        linkParentIndices=[0], linkJointTypes=[p.JOINT_PRISMATIC], linkJointAxis=[(0, 0, 1)],
+        physicsClientId=client,
+    )
+    p.changeDynamics(body, 0, jointLowerLimit=-TRAVEL, jointUpperLimit=0.0, physicsClientId=client)
+    # The spring: a weak position motor pulling the cap back up.
+    p.setJointMotorControl2(body, 0, p.POSITION_CONTROL, targetPosition=0.0, force=4.0, positionGain=0.2, physicsClientId=client)
+    return body
