@@ -115,6 +115,7 @@ def run_episode(request: EpisodeRequest, out_dir: str | Path | None) -> EpisodeO
             dense_fps=float(request.dense_fps), extra=task.scene_facts(),
         )
         if out_dir is not None:
+            Path(out_dir).mkdir(parents=True, exist_ok=True)
             writer = EpisodeWriter(Path(out_dir) / request.filename, info)
         reached = {"index": 0, "last_step": -1}
         period = int(round(240 / request.dense_fps)) if request.dense_fps > 0 else 0

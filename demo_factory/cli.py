@@ -1,0 +1,232 @@
+"""The ``demo-factory`` command: tasks, generate, inspect, convert."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+from collections import Counter
+from pathlib import Path
+
+import numpy as np
+
+from demo_factory.tasks import SPLITS, TASKS, get_task
+
+SUMMARY_FILE = "generation_summary.json"
+
+
+class UsageError(Exception):
+    """Bad input a user can fix: reported as one line, exit code 2, nothing written."""
+
+
+# -- argument types ---------------------------------------------------------------------------
+def positive_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a whole number") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"{value} is not allowed; must be at least 1")
+    return value
+
+
+def non_negative_float(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"{value} is not allowed; must be 0 or more")
+    return value
+
+
+def image_size(text: str) -> tuple[int, int]:
+    """``128`` or ``96x128`` (height x width)."""
+    parts = text.lower().split("x")
+    try:
+        values = [int(v) for v in parts]
+    except ValueError:
+        values = []
+    if len(values) not in (1, 2) or min(values) < 16 or max(values) > 1024:
+        raise argparse.ArgumentTypeError(f"{text!r} is not an image size; use N or HxW with 16..1024 pixels")
+    return (values[0], values[-1])
+
+
+# -- output folders ---------------------------------------------------------------------------
+def check_output_folder(out: Path, own_file) -> None:
+    """Refuse a path that is a file, holds files we did not write, or cannot be written."""
+    if out.exists():
+        if not out.is_dir():
+            raise UsageError(f"--out {out}: exists and is not a folder")
+        foreign = sorted(p.name for p in out.iterdir() if not own_file(p.name))
+        if foreign:
+            shown = ", ".join(foreign[:3]) + (" ..." if len(foreign) > 3 else "")
+            raise UsageError(f"--out {out}: the folder holds other files ({shown}); use an empty or new folder")
+        if not os.access(out, os.W_OK | os.X_OK):
+            raise UsageError(f"--out {out}: the folder is not writable")
+        return
+    parent = out.parent
+    while not parent.exists():
+        parent = parent.parent
+    if not parent.is_dir() or not os.access(parent, os.W_OK | os.X_OK):
+        raise UsageError(f"--out {out}: cannot create it ({parent} is not a writable folder)")
+
+
+def _is_generation_file(name: str) -> bool:
+    return name.endswith(".mcap") or name.endswith(".mcap.partial") or name == SUMMARY_FILE
+
+
+# -- commands ---------------------------------------------------------------------------------
+def cmd_tasks(args) -> int:
+    rows = [("task", "category", "variations", "train", "test", "description")]
+    for name in sorted(TASKS):
+        task = get_task(name)
+        rows.append((name, task.category, str(len(task.variations)), str(len(task.split_variations("train"))),
+                     str(len(task.split_variations("test"))), task.description))
+    widths = [max(len(r[i]) for r in rows) for i in range(5)]
+    for row in rows:
+        print("  ".join(cell.ljust(w) for cell, w in zip(row, widths)) + "  " + row[5])
+    return 0
+
+
+def cmd_generate(args) -> int:
+    from tqdm import tqdm
+
+    from demo_factory.generate import job_requests, run_requests
+
+    out = Path(args.out)
+    check_output_folder(out, _is_generation_file)
+    requests = job_requests(args.task, args.split, args.episodes, args.seed, image_size=args.image_size,
+                            dense_fps=args.dense_fps)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise UsageError(f"--out {out}: cannot create it ({exc.strerror})") from None
+    outcomes = []
+    bar = tqdm(total=len(requests), desc=f"{args.task}/{args.split}", unit="episode", file=sys.stderr)
+    for outcome in run_requests(requests, out, workers=args.workers):
+        outcomes.append(outcome)
+        bar.update(1)
+        bar.set_postfix(kept=sum(o.kept for o in outcomes), failed=sum(not o.kept for o in outcomes))
+    bar.close()
+    summary = generation_summary(args, outcomes)
+    (out / SUMMARY_FILE).write_text(json.dumps(summary, indent=2) + "\n")
+    print_generation_summary(summary, out)
+    return 0 if summary["kept"] > 0 else 1
+
+
+def generation_summary(args, outcomes) -> dict:
+    """The figures a user wants after a generation run (also written to ``generation_summary.json``)."""
+    fresh = [o for o in outcomes if not o.resumed]
+    planning = [s for o in fresh for s in o.planning_seconds]
+    attempts = Counter(a for o in fresh for a in o.attempts_per_transition)
+    return {
+        "command": " ".join(["demo-factory", "generate", "--task", args.task, "--split", args.split, "--episodes",
+                             str(args.episodes), "--seed", str(args.seed), "--out", str(args.out)]),
+        "task": args.task,
+        "split": args.split,
+        "requested": len(outcomes),
+        "kept": sum(o.kept for o in outcomes),
+        "already_present": sum(o.resumed for o in outcomes),
+        "failed": [
+            {"variation_id": o.request.variation_id, "episode_seed": o.request.episode_seed, "reason": o.reason}
+            for o in outcomes if not o.kept
+        ],
+        "failure_reasons": dict(Counter(o.reason for o in outcomes if not o.kept)),
+        "planner_attempts_histogram": {str(k): attempts[k] for k in sorted(attempts)},
+        "planning_seconds_median": float(np.median(planning)) if planning else None,
+        "planning_seconds_p95": float(np.percentile(planning, 95)) if planning else None,
+        "seconds_per_episode": float(np.mean([o.seconds for o in fresh])) if fresh else None,
+    }
+
+
+def print_generation_summary(summary: dict, out: Path) -> None:
+    print(f"\n{summary['task']}/{summary['split']}: kept {summary['kept']} of {summary['requested']} episodes "
+          f"({summary['already_present']} already present) in {out}")
+    if summary["failed"]:
+        reasons = ", ".join(f"{k}: {v}" for k, v in summary["failure_reasons"].items())
+        print(f"  failed: {len(summary['failed'])} ({reasons})")
+        for f in summary["failed"]:
+            print(f"    variation {f['variation_id']} seed {f['episode_seed']}: {f['reason']}")
+    hist = ", ".join(f"{k}: {v}" for k, v in summary["planner_attempts_histogram"].items())
+    if hist:
+        print(f"  planner attempts per planned transition: {hist}")
+        print(f"  planning time per transition: median {summary['planning_seconds_median']:.3f} s, "
+              f"p95 {summary['planning_seconds_p95']:.3f} s")
+    if summary["seconds_per_episode"] is not None:
+        print(f"  seconds per episode: {summary['seconds_per_episode']:.2f}")
+
+
+def cmd_inspect(args) -> int:
+    from demo_factory.record import RecordingError, read_episode
+    from demo_factory.record.inspect import describe
+
+    path = Path(args.recording)
+    if not path.is_file():
+        raise UsageError(f"{path}: no such recording file")
+    try:
+        print(describe(path, read_episode(path)))
+    except RecordingError as exc:
+        raise UsageError(str(exc)) from None
+    return 0
+
+
+# -- parser -----------------------------------------------------------------------------------
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="demo-factory",
+        description="Manufacture instruction-conditioned robot demonstrations: simulate → MCAP → LeRobot.",
+    )
+    commands = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    tasks = commands.add_parser("tasks", help="list the tasks, their variation counts and split sizes",
+                                description="List the tasks, their variation counts and train/test split sizes.")
+    tasks.set_defaults(run=cmd_tasks)
+
+    gen = commands.add_parser(
+        "generate", help="generate expert episodes into MCAP recordings",
+        description="Run the scripted expert with the OMPL planner in PyBullet and record each successful "
+                    "episode to one MCAP file. Episode i uses the split's variation i mod n. Re-running the "
+                    "same command skips episodes already recorded.",
+    )
+    gen.add_argument("--task", required=True, choices=sorted(TASKS), help="task name (see `demo-factory tasks`)")
+    gen.add_argument("--split", default="train", choices=SPLITS, help="variation split (default: train)")
+    gen.add_argument("--episodes", type=positive_int, default=10, help="episodes to attempt (default: 10)")
+    gen.add_argument("--seed", type=int, default=0, help="base seed; episode seeds derive from it (default: 0)")
+    gen.add_argument("--out", required=True, help="output folder for the .mcap files")
+    gen.add_argument("--image-size", type=image_size, default=(128, 128), help="camera size, N or HxW (default: 128)")
+    gen.add_argument("--dense-fps", type=non_negative_float, default=0.0,
+                     help="also record dense frames at this rate between keyframes (default: 0 = keyframes only)")
+    gen.add_argument("--workers", type=positive_int, default=1, help="parallel processes (default: 1)")
+    gen.set_defaults(run=cmd_generate)
+
+    ins = commands.add_parser("inspect", help="summarise one episode recording",
+                              description="Print an episode's topics, keyframes, instruction and outcome.")
+    ins.add_argument("recording", help="path to an episode .mcap file")
+    ins.set_defaults(run=cmd_inspect)
+
+    try:
+        from demo_factory.convert.cli import add_parser as add_convert
+    except ImportError:
+        add_convert = None
+    if add_convert is not None:
+        add_convert(commands)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        return args.run(args)
+    except UsageError as exc:
+        print(f"demo-factory {args.command}: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("interrupted; re-run the same command to finish (completed episodes are kept)", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,56 @@
+"""Variations, splits and instructions of the multi-variation tasks."""
+
+import pytest
+
+from demo_factory.tasks import TASKS, get_task
+from demo_factory.tasks.palette import COLOURS, canonical_colour
+
+
+@pytest.mark.parametrize("name", sorted(TASKS))
+def test_train_and_test_variations_are_disjoint_and_sized(name):
+    task = get_task(name)
+    train = {v.colours for v in task.split_variations("train")}
+    test = {v.colours for v in task.split_variations("test")}
+    assert len(train) == 100 and len(test) == 100
+    assert not train & test
+    assert {len(c) for c in train} == {1, 2, 3} == {len(c) for c in test}
+
+
+@pytest.mark.parametrize("name", sorted(TASKS))
+def test_split_is_deterministic_across_instances(name):
+    assert get_task(name).split_variations("test") == get_task(name).split_variations("test")
+
+
+def test_push_buttons_palette_excludes_red_and_lime():
+    task = get_task("push_buttons")
+    assert "red" not in task.palette and "lime" not in task.palette and len(task.palette) == 18
+    assert all(len(set(v.colours)) == len(v.colours) for v in task.variations)
+
+
+@pytest.mark.parametrize("name", sorted(TASKS))
+def test_at_least_three_instruction_templates_naming_every_colour_in_order(name):
+    task = get_task(name)
+    for variation in task.split_variations("train")[:20]:
+        texts = task.synthetic_instructions(variation)
+        assert len(set(texts)) >= 3
+        for text in texts:
+            positions = [text.index(colour) for colour in variation.colours]
+            assert positions == sorted(positions), text
+
+
+def test_episode_instruction_is_a_deterministic_template_choice():
+    task = get_task("push_buttons")
+    variation = task.split_variations("train")[5]
+    chosen = {task.instruction(variation, seed) for seed in range(40)}
+    assert chosen <= set(task.synthetic_instructions(variation)) and len(chosen) >= 3
+    assert task.instruction(variation, 3) == get_task("push_buttons").instruction(variation, 3)
+
+
+def test_unknown_task_names_the_accepted_ones():
+    with pytest.raises(ValueError, match="unknown task 'nope'; accepted: push_buttons, tower"):
+        get_task("nope")
+
+
+def test_colour_spellings():
+    assert canonical_colour("Grey") == "gray" and canonical_colour("NAVY") == "navy"
+    assert canonical_colour("mauve") is None and len(COLOURS) == 20
