@@ -12,7 +12,7 @@ import numpy as np
 import pybullet as p
 
 from demo_factory.planning import JointPlanner, PlanResult
-from demo_factory.sim.kinematics import Kinematics, slerp_poses
+from demo_factory.sim.kinematics import Kinematics, pose_error, slerp_poses
 from demo_factory.sim.world import TIME_STEP, World
 from demo_factory.tasks.base import KeyframeTarget
 
@@ -21,6 +21,7 @@ CARTESIAN_SPEED = 0.12  # m/s along straight-line moves
 CARTESIAN_STEP = 0.005  # metres between IK waypoints on a straight line
 MAX_JOINT_JUMP = 0.25  # rad between consecutive straight-line IK solutions (else: not a straight move)
 SETTLE_STEPS = 120
+CONTACT_MOVE_MAX = 0.15  # metres: a predicted move that starts or ends in contact goes straight
 GRIPPER_STEPS = (24, 144)  # at least / at most this many steps to open or close
 
 
@@ -53,6 +54,27 @@ class KeyframeExecutor:
         if outcome.ok and target.gripper_open != self.world.gripper_command:
             self._actuate_gripper(target.gripper_open)
         return outcome
+
+    def execute_predicted(self, pose, gripper_open: float, transition: int) -> TransitionOutcome:
+        """Execute a predicted keyframe as in the HiveFormer paper: plan to the pose, then grip.
+
+        The pose is reached with the seeded OMPL planner. A move whose start or goal touches the
+        scene on purpose (pressing, grasping, placing, lifting off) cannot be collision-free; if it
+        is short it follows a straight line instead, as the expert's own contact moves do.
+        """
+        pose = np.asarray(pose, dtype=float).copy()
+        pose[3:] /= np.linalg.norm(pose[3:]) or 1.0
+        position_error, rotation_error = pose_error(self.world.gripper_pose(), pose)
+        if position_error < 1e-3 and rotation_error < 1e-2:
+            motion = "gripper"
+        else:
+            start = self.world.joint_positions()
+            goal = self.kinematics.inverse(pose, seed=start)
+            if goal is None:
+                return TransitionOutcome(False, "unreachable")
+            free = all(self.planner.states_valid(self.world, [start, goal], self._grasped_relative()))
+            motion = "cartesian" if not free and position_error <= CONTACT_MOVE_MAX else "planned"
+        return self.execute(KeyframeTarget(tuple(pose), float(gripper_open >= 0.5), motion), transition)
 
     # -- motions --------------------------------------------------------------------------
     def _planned(self, pose: np.ndarray, transition: int) -> TransitionOutcome:

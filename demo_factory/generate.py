@@ -77,7 +77,7 @@ def library_versions() -> dict[str, str]:
     return {name: metadata.version(name) for name in VERSIONED_PACKAGES}
 
 
-def _observe(world: World, keyframe_index: int, is_keyframe: bool, is_dense: bool) -> Frame:
+def observe(world: World, keyframe_index: int, is_keyframe: bool, is_dense: bool) -> Frame:
     return Frame(
         time_ns=world.time_ns,
         is_keyframe=is_keyframe,
@@ -122,7 +122,7 @@ def run_episode(request: EpisodeRequest, out_dir: str | Path | None) -> EpisodeO
 
         def record_dense(w: World) -> None:
             if w.step_count % period == 0 and w.step_count != reached["last_step"]:
-                writer.write_frame(_observe(w, reached["index"], is_keyframe=False, is_dense=True))
+                writer.write_frame(observe(w, reached["index"], is_keyframe=False, is_dense=True))
                 reached["last_step"] = w.step_count
 
         def record_keyframe(index: int, target_pose, gripper_open: float, motion: str) -> None:
@@ -130,7 +130,7 @@ def run_episode(request: EpisodeRequest, out_dir: str | Path | None) -> EpisodeO
             if writer is None:
                 return
             dense = period > 0 and world.step_count % period == 0
-            frame = _observe(world, index, is_keyframe=True, is_dense=dense)
+            frame = observe(world, index, is_keyframe=True, is_dense=dense)
             writer.write_frame(frame)
             writer.write_keyframe(Keyframe(index, world.time_ns, np.asarray(target_pose), gripper_open,
                                            frame.robot.gripper_pose, motion))

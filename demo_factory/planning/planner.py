@@ -126,25 +126,17 @@ class JointPlanner:
                 break
         return result
 
+    def states_valid(self, world, configurations, grasped=None, ignore_bodies=()) -> list[bool]:
+        """Collision-check joint configurations without disturbing ``world`` (checked in a child)."""
+        result = _in_child(lambda: [CollisionChecker(world, self.margin, ignore_bodies, grasped).valid(q)
+                                    for q in configurations])
+        if isinstance(result, str):
+            raise RuntimeError(result)
+        return result
+
     def _attempt_in_child(self, world, start, goal, seed, grasped, ignore_bodies):
-        read_fd, write_fd = os.pipe()
-        pid = os.fork()
-        if pid == 0:  # child: plan, report, and leave without running any parent clean-up
-            os.close(read_fd)
-            try:
-                outcome = self._solve(world, start, goal, seed, grasped, ignore_bodies)
-            except BaseException as exc:  # report, never hang the parent
-                outcome = (f"error: {type(exc).__name__}: {exc}", None)
-            with os.fdopen(write_fd, "wb") as pipe:
-                pickle.dump(outcome, pipe)
-            os._exit(0)
-        os.close(write_fd)
-        with os.fdopen(read_fd, "rb") as pipe:
-            data = pipe.read()
-        os.waitpid(pid, 0)
-        if not data:
-            return "error: planner process died", None
-        return pickle.loads(data)
+        outcome = _in_child(lambda: self._solve(world, start, goal, seed, grasped, ignore_bodies))
+        return outcome if isinstance(outcome, tuple) else (outcome, None)
 
     def _solve(self, world, start, goal, seed, grasped, ignore_bodies):
         from ompl import base as ob
@@ -184,3 +176,28 @@ class JointPlanner:
         if not checker.path_valid(waypoints):
             return "invalid_path", None
         return "exact", waypoints
+
+
+def _in_child(work):
+    """Run ``work()`` in a forked child and return its (pickled) result.
+
+    The child owns a copy-on-write copy of the whole process, PyBullet worlds included, so it may
+    move robots and seed OMPL freely; nothing it does reaches the parent. A crash or exception in
+    the child comes back as an ``"error: ..."`` string.
+    """
+    read_fd, write_fd = os.pipe()
+    pid = os.fork()
+    if pid == 0:  # child: compute, report, and leave without running any parent clean-up
+        os.close(read_fd)
+        try:
+            outcome = work()
+        except BaseException as exc:  # report, never hang the parent
+            outcome = f"error: {type(exc).__name__}: {exc}"
+        with os.fdopen(write_fd, "wb") as pipe:
+            pickle.dump(outcome, pipe)
+        os._exit(0)
+    os.close(write_fd)
+    with os.fdopen(read_fd, "rb") as pipe:
+        data = pipe.read()
+    os.waitpid(pid, 0)
+    return pickle.loads(data) if data else "error: planner process died"

@@ -58,7 +58,7 @@ class PushButtons(Task):
         colours = [colours[i] for i in rng.permutation(N_BUTTONS)]
         positions = spread_positions(rng, N_BUTTONS, WORKSPACE, MIN_SPACING)
         self.world = world
-        self.variation = variation
+        self.instructed = variation
         self.buttons = {colour: _make_button(world, pos, colour) for colour, pos in zip(colours, positions)}
         self.positions = {colour: pos for colour, pos in zip(colours, positions)}
         self.pressed_order: list[str] = []
@@ -71,7 +71,7 @@ class PushButtons(Task):
     def expert(self, world) -> list[KeyframeTarget]:
         tip = world.fingertip_offset()
         keyframes = []
-        for colour in self.variation.colours:
+        for colour in self.instructed.colours:
             top = self.cap_top(colour)
             above = (*(top + [0, 0, APPROACH_HEIGHT + tip]), *TOP_DOWN)
             pressed = (*(top + [0, 0, tip - PRESS_DEPTH]), *TOP_DOWN)
@@ -90,7 +90,7 @@ class PushButtons(Task):
             self._down[colour] = down
 
     def success(self, world) -> bool:
-        return tuple(self.pressed_order) == self.variation.colours
+        return tuple(self.pressed_order) == self.instructed.colours
 
     def scene_facts(self) -> dict:
         return {

@@ -54,7 +54,7 @@ class Tower(Task):
         colours = list(variation.colours) + list(rng.choice(distractors, N_CUBES - len(variation.colours), replace=False))
         points = spread_positions(rng, N_CUBES + 1, WORKSPACE, MIN_SPACING)
         self.world = world
-        self.variation = variation
+        self.instructed = variation
         self.target = points[0]
         half = CUBE / 2
         world.add_box((0.035, 0.035, 0.0005), (*self.target, 0.0006), (0.6, 0.6, 0.6, 1.0), mass=0.0, collision=False)
@@ -74,7 +74,7 @@ class Tower(Task):
     def expert(self, world) -> list[KeyframeTarget]:
         keyframes = []
         place_orientation = _top_down(0.0)
-        for level, colour in enumerate(self.variation.colours):
+        for level, colour in enumerate(self.instructed.colours):
             position, _ = world.body_pose(self.cubes[colour])
             grasp_orientation = _top_down(self.grasp_yaw(colour))
             grasp = (*position, *grasp_orientation)
@@ -98,7 +98,7 @@ class Tower(Task):
         return list(self.cubes.values())
 
     def success(self, world) -> bool:
-        for level, colour in enumerate(self.variation.colours):
+        for level, colour in enumerate(self.instructed.colours):
             position, _ = world.body_pose(self.cubes[colour])
             if np.linalg.norm(position[:2] - self.target) > POSITION_TOLERANCE:
                 return False
