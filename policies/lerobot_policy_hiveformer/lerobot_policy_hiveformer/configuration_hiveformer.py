@@ -1,0 +1,232 @@
+"""Configuration of the HiveFormer policy (Guhur et al., CoRL 2022) for LeRobot 0.4.4.
+
+Defaults follow the paper's best model (supplement §1): hidden size 64, 8 heads, a history of 6
+keyframes, the instruction as a sequence of frozen CLIP ViT-B/32 token features.
+"""
+
+from dataclasses import dataclass, field
+
+from lerobot.configs.policies import PreTrainedConfig
+from lerobot.configs.types import FeatureType, NormalizationMode, PolicyFeature
+from lerobot.optim.optimizers import AdamWConfig
+from lerobot.utils.constants import ACTION, OBS_STATE
+
+IMAGES_PREFIX = "observation.images."
+DEPTH_PREFIX = "observation.depth."
+CALIBRATION_PREFIX = "observation.calibration."
+# [fx, fy, cx, cy] + 4x4 world-from-camera transform, row-major.
+CALIBRATION_DIM = 20
+# [x, y, z, qx, qy, qz, qw, open]: the next keyframe's grasp-frame pose and gripper command.
+ACTION_DIM = 8
+# observation.state starts with the same 8 values for the current gripper; the joints after them are unused.
+GRIPPER_STATE_DIM = 8
+# The encoder halves the image four times: one token per cell of an (H/16, W/16) grid.
+ENCODER_STRIDE = 16
+TEXT_ENCODERS = ("clip", "clip_tiny_random", "one_hot")
+
+
+@PreTrainedConfig.register_subclass("hiveformer")
+@dataclass
+class HiveformerConfig(PreTrainedConfig):
+    """HiveFormer: a keyframe policy conditioned on an instruction and the history of observations.
+
+    Inputs are read from the dataset's features: every camera `<cam>` with `observation.images.<cam>`
+    must also have `observation.depth.<cam>` (millimetres packed as R = mm // 256, G = mm % 256) and
+    `observation.calibration.<cam>` ([fx, fy, cx, cy] + world-from-camera 4x4). The policy rebuilds
+    world-frame point clouds from them, so none of these may be normalised with dataset statistics,
+    and neither may the state or the action: the predicted position is a point of the observed
+    point cloud (plus an offset), in world metres.
+    """
+
+    # Number of keyframes the transformer sees: the current one and up to n_history - 1 before it.
+    n_history: int = 6
+    # Ablation: False makes every keyframe attend to itself and the instruction only (no history).
+    use_history: bool = True
+
+    # Transformer width; also the size of every token.
+    hidden_dim: int = 64
+    # Attention heads in every attention layer; must divide hidden_dim.
+    num_heads: int = 8
+    # Block-causal transformer layers (each: cross-attention to instruction + history, self-attention
+    # within the step, feed-forward).
+    num_layers: int = 1
+    # Inner size of the transformer's feed-forward layers.
+    feedforward_dim: int = 256
+    # Dropout in attention and feed-forward layers.
+    dropout: float = 0.1
+
+    # Ablation: False adds no learned patch-position embeddings (E_T^x, E_T^y) to the visual tokens.
+    use_position_embeddings: bool = True
+    # Softmax temperature of the per-pixel attention over all pixels of all cameras.
+    attention_temperature: float = 0.1
+    # Standard deviation, in pixels, of the Gaussian that marks the current gripper position in the
+    # fourth input channel of each camera.
+    gripper_mark_sigma_px: float = 2.0
+
+    # "clip": frozen CLIP text transformer with real weights (`text_encoder_name` from the Hugging Face
+    # cache, or `text_encoder_path`); "clip_tiny_random": the real CLIP tokenizer with a small randomly
+    # initialised CLIP text transformer (tests, offline smoke runs); "one_hot": a one-hot code of the
+    # instruction among `instruction_vocabulary`.
+    text_encoder: str = "clip"
+    # Hub id of the CLIP model whose text transformer is used when text_encoder="clip".
+    text_encoder_name: str = "openai/clip-vit-base-patch32"
+    # Local directory with a copy of that model (config.json + weights); takes precedence over the Hub.
+    text_encoder_path: str | None = None
+    # Ablation: False averages the instruction's token features into a single token.
+    instruction_as_sequence: bool = True
+    # Instructions known to the "one_hot" encoder; filled from the training dataset's tasks when empty.
+    # Unknown instructions share one extra code.
+    instruction_vocabulary: list[str] = field(default_factory=list)
+
+    # Weights of the three losses in the total.
+    position_loss_weight: float = 1.0
+    rotation_loss_weight: float = 1.0
+    gripper_loss_weight: float = 1.0
+
+    # AdamW preset.
+    optimizer_lr: float = 1e-4
+    optimizer_weight_decay: float = 1e-4
+    optimizer_grad_clip_norm: float = 10.0
+
+    # Every input is consumed in physical units (see the class docstring); only IDENTITY is accepted.
+    normalization_mapping: dict[str, NormalizationMode] = field(
+        default_factory=lambda: {
+            "VISUAL": NormalizationMode.IDENTITY,
+            "STATE": NormalizationMode.IDENTITY,
+            "ACTION": NormalizationMode.IDENTITY,
+        }
+    )
+
+    def __post_init__(self):
+        super().__post_init__()
+        if self.n_history < 1:
+            raise ValueError(f"n_history must be >= 1, got {self.n_history}.")
+        if self.hidden_dim < 1 or self.hidden_dim % self.num_heads != 0:
+            raise ValueError(
+                f"hidden_dim ({self.hidden_dim}) must be a positive multiple of num_heads ({self.num_heads})."
+            )
+        if self.num_layers < 1:
+            raise ValueError(f"num_layers must be >= 1, got {self.num_layers}.")
+        if self.feedforward_dim < 1:
+            raise ValueError(f"feedforward_dim must be >= 1, got {self.feedforward_dim}.")
+        if not 0.0 <= self.dropout < 1.0:
+            raise ValueError(f"dropout must be in [0, 1), got {self.dropout}.")
+        if self.attention_temperature <= 0:
+            raise ValueError(f"attention_temperature must be > 0, got {self.attention_temperature}.")
+        if self.gripper_mark_sigma_px <= 0:
+            raise ValueError(f"gripper_mark_sigma_px must be > 0, got {self.gripper_mark_sigma_px}.")
+        if self.text_encoder not in TEXT_ENCODERS:
+            raise ValueError(
+                f"text_encoder must be one of {', '.join(TEXT_ENCODERS)}; got {self.text_encoder!r}."
+            )
+        for name, mode in self.normalization_mapping.items():
+            if NormalizationMode(mode) is not NormalizationMode.IDENTITY:
+                raise ValueError(
+                    f"HiveFormer consumes {name} features in physical units; normalization_mapping[{name!r}] "
+                    f"must be IDENTITY, got {mode}."
+                )
+
+    # --- Features -------------------------------------------------------------------------------
+
+    @property
+    def camera_names(self) -> list[str]:
+        """Cameras in the order of the input features: every `observation.images.<cam>`."""
+        return [
+            key.removeprefix(IMAGES_PREFIX)
+            for key in (self.input_features or {})
+            if key.startswith(IMAGES_PREFIX)
+        ]
+
+    @property
+    def image_shape(self) -> tuple[int, int]:
+        """(H, W) shared by every camera, taken from the dataset's features."""
+        channels_height_width = self.input_features[IMAGES_PREFIX + self.camera_names[0]].shape
+        return int(channels_height_width[1]), int(channels_height_width[2])
+
+    def validate_features(self) -> None:
+        """Raise one clear error naming the first feature HiveFormer needs but the dataset lacks."""
+        inputs = self.input_features or {}
+        cameras = self.camera_names
+        if not cameras:
+            raise ValueError(
+                "HiveFormer needs at least one camera: no 'observation.images.<cam>' feature among "
+                "the inputs "
+                f"({', '.join(inputs) or 'none'})."
+            )
+        expected_shape = tuple(inputs[IMAGES_PREFIX + cameras[0]].shape)
+        for camera in cameras:
+            for key, feature_type in (
+                (IMAGES_PREFIX + camera, FeatureType.VISUAL),
+                (DEPTH_PREFIX + camera, FeatureType.VISUAL),
+                (CALIBRATION_PREFIX + camera, FeatureType.STATE),
+            ):
+                if key not in inputs:
+                    raise ValueError(
+                        f"HiveFormer needs the feature '{key}' for camera '{camera}'; it is missing."
+                    )
+                feature: PolicyFeature = inputs[key]
+                if feature_type is FeatureType.VISUAL and tuple(feature.shape) != expected_shape:
+                    raise ValueError(
+                        f"Feature '{key}' has shape {tuple(feature.shape)}; every image and depth "
+                        "feature must "
+                        f"have the shape of '{IMAGES_PREFIX + cameras[0]}', {expected_shape}."
+                    )
+            calibration_shape = tuple(inputs[CALIBRATION_PREFIX + camera].shape)
+            if calibration_shape != (CALIBRATION_DIM,):
+                raise ValueError(
+                    f"Feature '{CALIBRATION_PREFIX + camera}' must have shape ({CALIBRATION_DIM},), "
+                    f"got {calibration_shape}."
+                )
+        channels, height, width = expected_shape
+        if channels != 3 or height % ENCODER_STRIDE or width % ENCODER_STRIDE:
+            raise ValueError(
+                f"HiveFormer images must be (3, H, W) with H and W multiples of {ENCODER_STRIDE}; "
+                f"'{IMAGES_PREFIX + cameras[0]}' is {expected_shape}."
+            )
+        if OBS_STATE not in inputs:
+            raise ValueError(f"HiveFormer needs the feature '{OBS_STATE}'; it is missing.")
+        if inputs[OBS_STATE].shape[0] < GRIPPER_STATE_DIM:
+            raise ValueError(
+                f"Feature '{OBS_STATE}' must start with [x, y, z, qx, qy, qz, qw, open]; "
+                f"its shape is {tuple(inputs[OBS_STATE].shape)}."
+            )
+        outputs = self.output_features or {}
+        if ACTION not in outputs:
+            raise ValueError(f"HiveFormer needs the feature '{ACTION}'; it is missing.")
+        if tuple(outputs[ACTION].shape) != (ACTION_DIM,):
+            raise ValueError(
+                f"Feature '{ACTION}' must have shape ({ACTION_DIM},) = [x, y, z, qx, qy, qz, qw, open]; "
+                f"got {tuple(outputs[ACTION].shape)}."
+            )
+
+    # --- History ----------------------------------------------------------------------------------
+
+    @property
+    def history_length(self) -> int:
+        """Keyframes per training sample and per rollout window."""
+        return self.n_history if self.use_history else 1
+
+    @property
+    def observation_delta_indices(self) -> list[int]:
+        return list(range(1 - self.history_length, 1))
+
+    @property
+    def action_delta_indices(self) -> list[int]:
+        # One target per history step: every step of the window is supervised (teacher forcing).
+        return list(range(1 - self.history_length, 1))
+
+    @property
+    def reward_delta_indices(self) -> None:
+        return None
+
+    # --- Training presets -------------------------------------------------------------------------
+
+    def get_optimizer_preset(self) -> AdamWConfig:
+        return AdamWConfig(
+            lr=self.optimizer_lr,
+            weight_decay=self.optimizer_weight_decay,
+            grad_clip_norm=self.optimizer_grad_clip_norm,
+        )
+
+    def get_scheduler_preset(self) -> None:
+        return None

@@ -1,0 +1,685 @@
+"""HiveFormer (Guhur et al., "Instruction-driven history-aware policies for robotic manipulations",
+CoRL 2022) as a LeRobot policy.
+
+Per keyframe step every camera gives RGB, a world-frame point cloud (rebuilt here from packed depth and
+calibration) and a channel marking the current gripper position. A shared UNet encoder turns each camera
+into a grid of tokens; a block-causal transformer mixes them with the instruction's CLIP token features
+and with the tokens of earlier steps; a UNet decoder scores every pixel of every camera, and the
+position is the softmax-weighted point cloud plus an offset; a small CNN predicts rotation and gripper.
+"""
+
+from collections import deque
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+import torch.nn.functional as F  # noqa: N812
+from torch import Tensor, nn
+
+from lerobot.policies.pretrained import PreTrainedPolicy
+from lerobot.utils.constants import ACTION, OBS_STATE
+
+from .configuration_hiveformer import (
+    CALIBRATION_PREFIX,
+    DEPTH_PREFIX,
+    ENCODER_STRIDE,
+    GRIPPER_STATE_DIM,
+    IMAGES_PREFIX,
+    HiveformerConfig,
+)
+
+ENCODER_CHANNELS = 16
+LEAKY_SLOPE = 0.02
+
+# --- Geometry: pure functions ----------------------------------------------------------------------
+
+
+def unpack_depth_mm(packed: Tensor) -> Tensor:
+    """Depth in millimetres from the dataset's packed image: R = mm // 256, G = mm % 256 (as [0, 1] floats).
+
+    (..., 3, H, W) -> (..., H, W); 0 means no hit.
+    """
+    high = torch.round(packed[..., 0, :, :] * 255.0)
+    low = torch.round(packed[..., 1, :, :] * 255.0)
+    return high * 256.0 + low
+
+
+def depth_to_world_points(depth_m: Tensor, calibration: Tensor) -> Tensor:
+    """World-frame point of every pixel (OpenCV camera axes, pixel centres at integer coordinates).
+
+    depth_m: (..., H, W) metres; calibration: (..., 20) = [fx, fy, cx, cy, world-from-camera 4x4 row-major].
+    Returns (..., 3, H, W).
+    """
+    height, width = depth_m.shape[-2:]
+    fx, fy, cx, cy = (calibration[..., i, None, None] for i in range(4))
+    world_from_camera = calibration[..., 4:].reshape(*calibration.shape[:-1], 4, 4)
+    v, u = torch.meshgrid(
+        torch.arange(height, device=depth_m.device, dtype=depth_m.dtype),
+        torch.arange(width, device=depth_m.device, dtype=depth_m.dtype),
+        indexing="ij",
+    )
+    camera_points = torch.stack([(u - cx) * depth_m / fx, (v - cy) * depth_m / fy, depth_m], dim=-3)
+    rotation = world_from_camera[..., :3, :3]
+    translation = world_from_camera[..., :3, 3]
+    world = torch.einsum("...ij,...jhw->...ihw", rotation, camera_points)
+    return world + translation[..., :, None, None]
+
+
+def project_to_pixels(points: Tensor, calibration: Tensor) -> tuple[Tensor, Tensor]:
+    """Pixel coordinates (u, v) of world points and whether they lie in front of the camera.
+
+    points: (..., 3); calibration: (..., 20). Returns ((..., 2), (...,) bool).
+    """
+    world_from_camera = calibration[..., 4:].reshape(*calibration.shape[:-1], 4, 4)
+    rotation = world_from_camera[..., :3, :3]
+    translation = world_from_camera[..., :3, 3]
+    camera_point = torch.einsum("...ji,...j->...i", rotation, points - translation)
+    depth = camera_point[..., 2]
+    in_front = depth > 1e-6
+    safe_depth = torch.where(in_front, depth, torch.ones_like(depth))
+    u = calibration[..., 0] * camera_point[..., 0] / safe_depth + calibration[..., 2]
+    v = calibration[..., 1] * camera_point[..., 1] / safe_depth + calibration[..., 3]
+    return torch.stack([u, v], dim=-1), in_front
+
+
+def gripper_mark(
+    gripper_xyz: Tensor, calibration: Tensor, height: int, width: int, sigma_px: float
+) -> Tensor:
+    """Gaussian blob at the gripper's projection into each camera; zero if it is behind the camera.
+
+    gripper_xyz: (..., 3); calibration: (..., 20). Returns (..., 1, H, W).
+    """
+    uv, in_front = project_to_pixels(gripper_xyz, calibration)
+    rows = torch.arange(height, device=uv.device, dtype=uv.dtype)
+    cols = torch.arange(width, device=uv.device, dtype=uv.dtype)
+    du2 = (cols - uv[..., 0, None]) ** 2  # (..., W)
+    dv2 = (rows - uv[..., 1, None]) ** 2  # (..., H)
+    blob = torch.exp(-(dv2[..., :, None] + du2[..., None, :]) / (2 * sigma_px**2))
+    return (blob * in_front[..., None, None].to(blob.dtype)).unsqueeze(-3)
+
+
+def quaternion_loss(predicted: Tensor, target: Tensor) -> Tensor:
+    """Squared error to the closer of q and -q (both describe the same rotation). (..., 4) -> (...)."""
+    direct = ((predicted - target) ** 2).sum(-1)
+    flipped = ((predicted + target) ** 2).sum(-1)
+    return torch.minimum(direct, flipped)
+
+
+# --- Inputs ---------------------------------------------------------------------------------------
+
+
+@dataclass
+class KeyframeObservations:
+    """One window of keyframes in the model's units. Shapes: B batch, T steps, C cameras."""
+
+    rgb: Tensor  # (B, T, C, 3, H, W) in [0, 1]
+    points: Tensor  # (B, T, C, 3, H, W) world metres, 0 where no depth
+    valid_pixels: Tensor  # (B, T, C, H, W) bool: the depth had a hit
+    calibration: Tensor  # (B, T, C, 20)
+    gripper: Tensor  # (B, T, 8) = [x, y, z, qx, qy, qz, qw, open]
+    step_valid: Tensor  # (B, T) bool: False for padding before the episode start
+    instructions: list[str]  # B
+
+
+def keyframe_observations(batch: dict, config: HiveformerConfig) -> KeyframeObservations:
+    """Gather the policy's inputs from a LeRobot batch, with history (B, T, ...) or without (B, ...)."""
+    cameras = config.camera_names
+    first_image = batch[IMAGES_PREFIX + cameras[0]]
+    has_time = first_image.dim() == 5
+
+    def with_time(x: Tensor) -> Tensor:
+        return x if has_time else x.unsqueeze(1)
+
+    rgb = torch.stack([with_time(batch[IMAGES_PREFIX + cam]) for cam in cameras], dim=2)
+    packed_depth = torch.stack([with_time(batch[DEPTH_PREFIX + cam]) for cam in cameras], dim=2)
+    calibration = torch.stack([with_time(batch[CALIBRATION_PREFIX + cam]) for cam in cameras], dim=2).float()
+    depth_mm = unpack_depth_mm(packed_depth.float())  # (B, T, C, H, W)
+    valid_pixels = depth_mm > 0
+    points = depth_to_world_points(depth_mm / 1000.0, calibration) * valid_pixels.unsqueeze(-3)
+    gripper = with_time(batch[OBS_STATE])[..., :GRIPPER_STATE_DIM].float()
+
+    batch_size, steps = rgb.shape[:2]
+    pad_key = OBS_STATE + "_is_pad"
+    if has_time and pad_key in batch:
+        step_valid = ~batch[pad_key].bool()
+    else:
+        step_valid = torch.ones(batch_size, steps, dtype=torch.bool, device=rgb.device)
+
+    instructions = batch.get("task")
+    if instructions is None:
+        raise ValueError("HiveFormer needs the instruction: the batch has no 'task' entry.")
+    if isinstance(instructions, str):
+        instructions = [instructions] * batch_size
+    return KeyframeObservations(
+        rgb=rgb.float(),
+        points=points,
+        valid_pixels=valid_pixels,
+        calibration=calibration,
+        gripper=gripper,
+        step_valid=step_valid,
+        instructions=list(instructions),
+    )
+
+
+# --- Instruction encoders -------------------------------------------------------------------------
+
+# CLIP's context length; longer instructions are truncated by the tokenizer.
+CLIP_CONTEXT_LENGTH = 77
+# The real CLIP BPE vocabulary size: the tiny random encoder keeps it so that it uses the real tokenizer.
+CLIP_VOCAB_SIZE = 49408
+TINY_CLIP_SEED = 0
+
+
+class InstructionEncoder:
+    """Instruction strings -> per-token features, computed once per distinct string and cached.
+
+    Not an nn.Module on purpose: it is frozen, and its weights do not belong in the policy's checkpoint.
+    """
+
+    feature_dim: int
+
+    def __init__(self):
+        self._cache: dict[str, Tensor] = {}
+
+    def _encode_new(self, instructions: list[str]) -> list[Tensor]:
+        """Features (L_i, feature_dim) of each instruction."""
+        raise NotImplementedError
+
+    def encode(self, instructions: list[str]) -> tuple[Tensor, Tensor]:
+        """(B, L, feature_dim) features, padded with zeros, and (B, L) bool mask of real tokens (on CPU)."""
+        new = [text for text in dict.fromkeys(instructions) if text not in self._cache]
+        if new:
+            self._cache.update(zip(new, self._encode_new(new), strict=True))
+        features = [self._cache[text] for text in instructions]
+        length = max(f.shape[0] for f in features)
+        padded = torch.zeros(len(features), length, self.feature_dim)
+        mask = torch.zeros(len(features), length, dtype=torch.bool)
+        for i, f in enumerate(features):
+            padded[i, : f.shape[0]] = f
+            mask[i, : f.shape[0]] = True
+        return padded, mask
+
+
+class ClipInstructionEncoder(InstructionEncoder):
+    """Frozen CLIP text transformer; per-token last hidden states up to and including the end token.
+
+    Tokenises with the original CLIP BPE tokenizer shipped inside open_clip (no download); its token ids
+    are those of `openai/clip-vit-base-patch32`'s tokenizer.
+    """
+
+    def __init__(self, text_model):
+        super().__init__()
+        from open_clip.tokenizer import SimpleTokenizer
+
+        self.tokenizer = SimpleTokenizer()
+        self.text_model = text_model.eval().requires_grad_(False)
+        self.feature_dim = text_model.config.hidden_size
+
+    @torch.no_grad()
+    def _encode_new(self, instructions: list[str]) -> list[Tensor]:
+        token_ids = self.tokenizer(instructions, context_length=CLIP_CONTEXT_LENGTH)  # (N, 77)
+        lengths = (token_ids == self.tokenizer.eot_token_id).int().argmax(dim=1) + 1
+        attention_mask = torch.arange(token_ids.shape[1])[None, :] < lengths[:, None]
+        hidden = self.text_model(input_ids=token_ids, attention_mask=attention_mask.long()).last_hidden_state
+        return [hidden[i, :length].float() for i, length in enumerate(lengths.tolist())]
+
+
+class OneHotInstructionEncoder(InstructionEncoder):
+    """One token per instruction: its one-hot code among the known instructions (+ one "unknown" code)."""
+
+    def __init__(self, vocabulary: list[str]):
+        super().__init__()
+        self.index = {text: i for i, text in enumerate(vocabulary)}
+        self.feature_dim = len(vocabulary) + 1
+
+    def _encode_new(self, instructions: list[str]) -> list[Tensor]:
+        codes = torch.tensor([self.index.get(text, self.feature_dim - 1) for text in instructions])
+        return list(F.one_hot(codes, self.feature_dim).float().unsqueeze(1))
+
+
+def load_clip_text_model(config: HiveformerConfig):
+    """The pretrained CLIP text transformer, from `text_encoder_path` or the Hugging Face cache/Hub."""
+    from transformers import CLIPTextModel
+
+    how_to_fix = (
+        f"Without network access, point to a local copy of {config.text_encoder_name} (a directory with "
+        "config.json and the model weights, e.g. made by `huggingface-cli download "
+        f"{config.text_encoder_name} "
+        "--local-dir DIR` elsewhere) with --policy.text_encoder_path=DIR (config field `text_encoder_path`), "
+        "or use --policy.text_encoder=clip_tiny_random for an offline smoke run."
+    )
+    if config.text_encoder_path is not None:
+        source = Path(config.text_encoder_path).expanduser()
+        if not source.is_dir():
+            raise FileNotFoundError(f"text_encoder_path {str(source)!r} is not a directory. {how_to_fix}")
+    else:
+        source = config.text_encoder_name
+    try:
+        return CLIPTextModel.from_pretrained(source)
+    except OSError as error:
+        raise OSError(
+            f"Could not load the CLIP text encoder from {str(source)!r}: {error}\n{how_to_fix}"
+        ) from error
+
+
+def tiny_random_clip_text_model():
+    """A 2-layer, 64-wide CLIP text transformer over the real vocabulary, seeded so reloads match."""
+    from transformers import CLIPTextConfig, CLIPTextModel
+
+    text_config = CLIPTextConfig(
+        vocab_size=CLIP_VOCAB_SIZE,
+        hidden_size=64,
+        intermediate_size=128,
+        num_hidden_layers=2,
+        num_attention_heads=4,
+        max_position_embeddings=CLIP_CONTEXT_LENGTH,
+    )
+    with torch.random.fork_rng(devices=[]):
+        torch.manual_seed(TINY_CLIP_SEED)
+        return CLIPTextModel(text_config)
+
+
+def make_instruction_encoder(config: HiveformerConfig) -> InstructionEncoder:
+    if config.text_encoder == "clip":
+        return ClipInstructionEncoder(load_clip_text_model(config))
+    if config.text_encoder == "clip_tiny_random":
+        return ClipInstructionEncoder(tiny_random_clip_text_model())
+    return OneHotInstructionEncoder(config.instruction_vocabulary)
+
+
+# --- Network --------------------------------------------------------------------------------------
+
+
+class ConvBlock(nn.Sequential):
+    """3x3 convolution + GroupNorm + LeakyReLU, as in the supplement's UNet."""
+
+    def __init__(self, in_channels: int, out_channels: int, stride: int = 1):
+        super().__init__(
+            nn.Conv2d(in_channels, out_channels, kernel_size=3, stride=stride, padding=1),
+            nn.GroupNorm(num_groups=4, num_channels=out_channels),
+            nn.LeakyReLU(LEAKY_SLOPE),
+        )
+
+
+class UNetEncoder(nn.Module):
+    """Shared per-camera encoder: 8 and 16 channels at stride 1, then 4 stride-2 16-channel blocks."""
+
+    def __init__(self, in_channels: int):
+        super().__init__()
+        self.stem = nn.Sequential(ConvBlock(in_channels, 8), ConvBlock(8, ENCODER_CHANNELS))
+        self.down = nn.ModuleList([ConvBlock(ENCODER_CHANNELS, ENCODER_CHANNELS, stride=2) for _ in range(4)])
+
+    def forward(self, x: Tensor) -> list[Tensor]:
+        """(N, in, H, W) -> features at H, H/2, H/4, H/8, H/16 (16 channels each)."""
+        features = [self.stem(x)]
+        for block in self.down:
+            features.append(block(features[-1]))
+        return features
+
+
+class UNetDecoder(nn.Module):
+    """Transformer tokens + encoder skips -> one logit per pixel."""
+
+    def __init__(self, token_dim: int):
+        super().__init__()
+        self.bottleneck = ConvBlock(token_dim + ENCODER_CHANNELS, ENCODER_CHANNELS)
+        self.up = nn.ModuleList([ConvBlock(2 * ENCODER_CHANNELS, ENCODER_CHANNELS) for _ in range(4)])
+        self.to_logit = nn.Conv2d(ENCODER_CHANNELS, 1, kernel_size=1)
+
+    def forward(self, token_grid: Tensor, skips: list[Tensor]) -> Tensor:
+        """token_grid: (N, D, H/16, W/16); skips from UNetEncoder. Returns (N, H, W)."""
+        x = self.bottleneck(torch.cat([token_grid, skips[-1]], dim=1))
+        for block, skip in zip(self.up, reversed(skips[:-1]), strict=True):
+            x = F.interpolate(x, size=skip.shape[-2:], mode="bilinear", align_corners=False)
+            x = block(torch.cat([x, skip], dim=1))
+        return self.to_logit(x).squeeze(1)
+
+
+class MultiHeadAttention(nn.Module):
+    def __init__(self, dim: int, num_heads: int, dropout: float):
+        super().__init__()
+        self.num_heads = num_heads
+        self.dropout = dropout
+        self.query = nn.Linear(dim, dim)
+        self.key_value = nn.Linear(dim, 2 * dim)
+        self.out = nn.Linear(dim, dim)
+
+    def forward(self, queries: Tensor, keys: Tensor, allowed: Tensor) -> Tensor:
+        """queries (B, S, D), keys (B, K, D), allowed (B, S, K) bool -> (B, S, D)."""
+        batch, length, dim = queries.shape
+        head_dim = dim // self.num_heads
+        q = self.query(queries).view(batch, length, self.num_heads, head_dim).transpose(1, 2)
+        k, v = self.key_value(keys).view(batch, keys.shape[1], 2, self.num_heads, head_dim).unbind(2)
+        attended = F.scaled_dot_product_attention(
+            q,
+            k.transpose(1, 2),
+            v.transpose(1, 2),
+            attn_mask=allowed.unsqueeze(1),
+            dropout_p=self.dropout if self.training else 0.0,
+        )
+        return self.out(attended.transpose(1, 2).reshape(batch, length, dim))
+
+
+class BlockCausalLayer(nn.Module):
+    """Cross-attention to the instruction and all tokens of steps <= t, self-attention within step t, FFN."""
+
+    def __init__(self, config: HiveformerConfig):
+        super().__init__()
+        dim = config.hidden_dim
+        self.cross_attention = MultiHeadAttention(dim, config.num_heads, config.dropout)
+        self.self_attention = MultiHeadAttention(dim, config.num_heads, config.dropout)
+        self.feedforward = nn.Sequential(
+            nn.Linear(dim, config.feedforward_dim),
+            nn.GELU(),
+            nn.Dropout(config.dropout),
+            nn.Linear(config.feedforward_dim, dim),
+        )
+        self.norms = nn.ModuleList([nn.LayerNorm(dim) for _ in range(3)])
+        self.dropout = nn.Dropout(config.dropout)
+
+    def forward(
+        self,
+        tokens: Tensor,
+        instruction: Tensor,
+        cross_allowed: Tensor,
+        self_allowed: Tensor,
+        history: Tensor | None = None,
+    ) -> Tensor:
+        """tokens (B, S, D); instruction (B, L, D); self_allowed (B, S, S); cross_allowed (B, S, L + S' + S)
+        where `history` (B, S', D) holds earlier tokens that are keys but not queries (none by default)."""
+        keys = [instruction, tokens] if history is None else [instruction, history, tokens]
+        context = torch.cat(keys, dim=1)
+        tokens = self.norms[0](tokens + self.dropout(self.cross_attention(tokens, context, cross_allowed)))
+        tokens = self.norms[1](tokens + self.dropout(self.self_attention(tokens, tokens, self_allowed)))
+        return self.norms[2](tokens + self.dropout(self.feedforward(tokens)))
+
+
+@dataclass
+class KeyframePrediction:
+    position: Tensor  # (B, T, 3) world metres
+    quaternion: Tensor  # (B, T, 4) unit, [qx, qy, qz, qw]
+    open_logit: Tensor  # (B, T)
+    pixel_attention: Tensor  # (B, T, C, H, W): softmax over all pixels of all cameras
+
+    def action(self) -> Tensor:
+        """(B, T, 8) = [x, y, z, qx, qy, qz, qw, open] with open thresholded to 0/1."""
+        open_command = (self.open_logit > 0).to(self.position.dtype).unsqueeze(-1)
+        return torch.cat([self.position, self.quaternion, open_command], dim=-1)
+
+
+@dataclass
+class EncodedSteps:
+    tokens: Tensor  # (B, T, N, D) with N = C * grid cells + 1 gripper token; no step embedding yet
+    skips: list[Tensor]  # encoder features, each (B * T * C, 16, h, w)
+
+
+class HiveformerModel(nn.Module):
+    """The network; inputs are KeyframeObservations, outputs a KeyframePrediction per step."""
+
+    def __init__(self, config: HiveformerConfig, instruction_feature_dim: int):
+        super().__init__()
+        self.config = config
+        dim = config.hidden_dim
+        self.num_cameras = len(config.camera_names)
+        height, width = config.image_shape
+        self.grid = (height // ENCODER_STRIDE, width // ENCODER_STRIDE)
+
+        # RGB (3) + point cloud (3) + gripper mark (1).
+        self.encoder = UNetEncoder(in_channels=7)
+        self.patch_to_token = nn.Linear(ENCODER_CHANNELS + 3, dim)
+        self.gripper_to_token = nn.Linear(GRIPPER_STATE_DIM, dim)
+        self.instruction_to_token = nn.Linear(instruction_feature_dim, dim)
+        self.step_embedding = nn.Embedding(config.history_length, dim)
+        # One embedding per camera, plus one for the gripper-state token.
+        self.source_embedding = nn.Embedding(self.num_cameras + 1, dim)
+        if config.use_position_embeddings:
+            self.patch_row_embedding = nn.Embedding(self.grid[0], dim)
+            self.patch_col_embedding = nn.Embedding(self.grid[1], dim)
+        self.layers = nn.ModuleList([BlockCausalLayer(config) for _ in range(config.num_layers)])
+
+        self.decoder = UNetDecoder(token_dim=dim)
+        self.rotation_gripper_cnn = nn.Sequential(ConvBlock(dim, dim), ConvBlock(dim, dim))
+        # Offset (3) + quaternion (4) + open logit (1), from pooled camera features + the gripper token.
+        self.rotation_gripper_head = nn.Sequential(
+            nn.Linear(2 * dim, dim), nn.LeakyReLU(LEAKY_SLOPE), nn.Linear(dim, 8)
+        )
+
+    @property
+    def tokens_per_step(self) -> int:
+        return self.num_cameras * self.grid[0] * self.grid[1] + 1
+
+    def encode_steps(self, obs: KeyframeObservations) -> EncodedSteps:
+        """Per-step tokens, independent of every other step (so they can be cached during rollouts)."""
+        batch, steps, cameras, _, height, width = obs.rgb.shape
+        mark = gripper_mark(
+            obs.gripper[:, :, None, :3].expand(-1, -1, cameras, -1),
+            obs.calibration,
+            height,
+            width,
+            self.config.gripper_mark_sigma_px,
+        )
+        images = torch.cat([obs.rgb * 2 - 1, obs.points, mark], dim=3)  # (B, T, C, 7, H, W)
+        skips = self.encoder(images.flatten(0, 2))
+        bottleneck = skips[-1]  # (B*T*C, 16, h, w)
+
+        valid = obs.valid_pixels.flatten(0, 2).unsqueeze(1).to(obs.points.dtype)  # (B*T*C, 1, H, W)
+        point_sum = F.avg_pool2d(obs.points.flatten(0, 2) * valid, ENCODER_STRIDE)
+        valid_fraction = F.avg_pool2d(valid, ENCODER_STRIDE)
+        patch_xyz = point_sum / valid_fraction.clamp_min(1e-6)  # (B*T*C, 3, h, w): mean xyz of the patch
+
+        patch_features = (
+            torch.cat([bottleneck, patch_xyz], dim=1).flatten(2).transpose(1, 2)
+        )  # (B*T*C, h*w, 19)
+        patch_tokens = self.patch_to_token(patch_features)
+        if self.config.use_position_embeddings:
+            rows = self.patch_row_embedding.weight[:, None, :].expand(-1, self.grid[1], -1)
+            cols = self.patch_col_embedding.weight[None, :, :].expand(self.grid[0], -1, -1)
+            patch_tokens = patch_tokens + (rows + cols).flatten(0, 1)
+        patch_tokens = patch_tokens.view(batch, steps, cameras, -1, self.config.hidden_dim)
+        patch_tokens = patch_tokens + self.source_embedding.weight[:cameras, None, :]
+        gripper_token = self.gripper_to_token(obs.gripper) + self.source_embedding.weight[cameras]
+        tokens = torch.cat([patch_tokens.flatten(2, 3), gripper_token.unsqueeze(2)], dim=2)
+        return EncodedSteps(tokens=tokens, skips=skips)
+
+    def contextualise(
+        self,
+        tokens: Tensor,
+        step_valid: Tensor,
+        instruction: Tensor,
+        instruction_mask: Tensor,
+        last_step_only: bool = False,
+    ) -> Tensor:
+        """Block-causal transformer over a window. tokens (B, T, N, D) -> (B, T, N, D).
+
+        With last_step_only, the last layer computes only the newest step's outputs -> (B, 1, N, D): the
+        same values (earlier steps never see later ones), at a fraction of the cost during rollouts.
+        """
+        batch, steps, per_step, dim = tokens.shape
+        # Steps are numbered among the window's real keyframes, so a training window that starts before
+        # the episode and a rollout at the same keyframe give each step the same embedding.
+        ordinal = (step_valid.long().cumsum(1) - 1).clamp_min(0)
+        x = (tokens + self.step_embedding(ordinal).unsqueeze(2)).reshape(batch, steps * per_step, dim)
+        instruction_tokens = self.instruction_to_token(instruction)
+
+        step_of_token = torch.arange(steps, device=tokens.device).repeat_interleave(per_step)
+        if self.config.use_history:
+            earlier_or_same = step_of_token[None, :] <= step_of_token[:, None]
+        else:
+            earlier_or_same = step_of_token[None, :] == step_of_token[:, None]
+        key_step_valid = step_valid[:, step_of_token]  # (B, S)
+        history_allowed = earlier_or_same[None] & key_step_valid[:, None, :]  # (B, S, S)
+        instruction_allowed = instruction_mask[:, None, :].expand(-1, x.shape[1], -1)  # (B, S, L)
+        cross_allowed = torch.cat([instruction_allowed, history_allowed], dim=2)
+        same_step = (step_of_token[None, :] == step_of_token[:, None]).expand(batch, -1, -1)
+
+        for layer in self.layers[:-1]:
+            x = layer(x, instruction_tokens, cross_allowed, same_step)
+        if not last_step_only:
+            return self.layers[-1](x, instruction_tokens, cross_allowed, same_step).view(
+                batch, steps, per_step, dim
+            )
+        newest = slice(x.shape[1] - per_step, x.shape[1])
+        x = self.layers[-1](
+            x[:, newest],
+            instruction_tokens,
+            cross_allowed[:, newest],
+            same_step[:, newest, newest],
+            history=x[:, : newest.start],
+        )
+        return x.view(batch, 1, per_step, dim)
+
+    def decode_steps(
+        self, context: Tensor, encoded: EncodedSteps, obs: KeyframeObservations
+    ) -> KeyframePrediction:
+        """Heads for every step of `context` (B, T, N, D); `encoded` and `obs` hold the same T steps."""
+        batch, steps, _, dim = context.shape
+        cameras = self.num_cameras
+        grid_h, grid_w = self.grid
+        camera_grids = (
+            context[:, :, :-1].reshape(batch * steps * cameras, grid_h, grid_w, dim).permute(0, 3, 1, 2)
+        )  # (B*T*C, D, h, w)
+        logits = self.decoder(camera_grids, encoded.skips)  # (B*T*C, H, W)
+        height, width = logits.shape[-2:]
+        logits = logits.view(batch, steps, cameras * height * width) / self.config.attention_temperature
+        valid = obs.valid_pixels.reshape(batch, steps, -1)
+        # Pixels without depth have no 3D point to point at.
+        logits = logits.masked_fill(~valid, torch.finfo(logits.dtype).min)
+        attention = logits.softmax(-1)  # (B, T, C*H*W)
+        points = obs.points.permute(0, 1, 2, 4, 5, 3).reshape(batch, steps, -1, 3)
+        attended_point = torch.einsum("btp,btpk->btk", attention, points)
+
+        pooled = self.rotation_gripper_cnn(camera_grids).amax(dim=(-2, -1))  # (B*T*C, D)
+        pooled = pooled.view(batch, steps, cameras, dim).amax(dim=2)
+        head = self.rotation_gripper_head(torch.cat([pooled, context[:, :, -1]], dim=-1))  # (B, T, 8)
+        return KeyframePrediction(
+            position=attended_point + head[..., :3],
+            quaternion=F.normalize(head[..., 3:7], dim=-1),
+            open_logit=head[..., 7],
+            pixel_attention=attention.view(batch, steps, cameras, height, width),
+        )
+
+    def forward(
+        self, obs: KeyframeObservations, instruction: Tensor, instruction_mask: Tensor
+    ) -> KeyframePrediction:
+        encoded = self.encode_steps(obs)
+        context = self.contextualise(encoded.tokens, obs.step_valid, instruction, instruction_mask)
+        return self.decode_steps(context, encoded, obs)
+
+
+# --- Policy ---------------------------------------------------------------------------------------
+
+
+def _last_step(obs: KeyframeObservations) -> KeyframeObservations:
+    return KeyframeObservations(
+        rgb=obs.rgb[:, -1:],
+        points=obs.points[:, -1:],
+        valid_pixels=obs.valid_pixels[:, -1:],
+        calibration=obs.calibration[:, -1:],
+        gripper=obs.gripper[:, -1:],
+        step_valid=obs.step_valid[:, -1:],
+        instructions=obs.instructions,
+    )
+
+
+class HiveformerPolicy(PreTrainedPolicy):
+    """HiveFormer keyframe policy: one action = the next keyframe's gripper pose and open command."""
+
+    config_class = HiveformerConfig
+    name = "hiveformer"
+
+    def __init__(self, config: HiveformerConfig, dataset_stats=None, dataset_meta=None, **kwargs):
+        super().__init__(config)
+        config.validate_features()
+        if config.text_encoder == "one_hot" and not config.instruction_vocabulary:
+            if dataset_meta is None:
+                raise ValueError(
+                    "text_encoder='one_hot' needs instruction_vocabulary, or a dataset to read the "
+                    "tasks from."
+                )
+            config.instruction_vocabulary = sorted(str(task) for task in dataset_meta.tasks.index)
+        self.config = config
+        # Kept outside the module tree: the frozen encoder is neither trained nor saved with the policy.
+        self.instruction_encoder: InstructionEncoder = make_instruction_encoder(config)
+        self.model = HiveformerModel(config, self.instruction_encoder.feature_dim)
+        self.reset()
+
+    def get_optim_params(self) -> list[nn.Parameter]:
+        return [p for p in self.parameters() if p.requires_grad]
+
+    def reset(self):
+        """Forget the rollout history; call at every episode start."""
+        self._history: deque[Tensor] = deque(maxlen=self.config.history_length)
+
+    def _encode_instructions(self, instructions: list[str], device: torch.device) -> tuple[Tensor, Tensor]:
+        features, mask = self.instruction_encoder.encode(instructions)
+        if not self.config.instruction_as_sequence:
+            weights = mask.unsqueeze(-1).to(features.dtype)
+            features = (features * weights).sum(1, keepdim=True) / weights.sum(1, keepdim=True)
+            mask = mask[:, :1]
+        return features.to(device), mask.to(device)
+
+    def predict_keyframes(self, batch: dict) -> KeyframePrediction:
+        """Predictions for every step of a batch with history (B, T, ...) or a single step (B, ...)."""
+        obs = keyframe_observations(batch, self.config)
+        instruction, instruction_mask = self._encode_instructions(obs.instructions, obs.rgb.device)
+        return self.model(obs, instruction, instruction_mask)
+
+    def forward(self, batch: dict) -> tuple[Tensor, dict]:
+        """Teacher-forced losses over every non-padded step of the history window."""
+        prediction = self.predict_keyframes(batch)
+        target = batch[ACTION]  # (B, T, 8)
+        if target.dim() == 2:
+            target = target.unsqueeze(1)
+        supervised = supervised_steps(batch, target)
+        weight = supervised.to(target.dtype)
+        count = weight.sum().clamp_min(1.0)
+
+        position_loss = (((prediction.position - target[..., :3]) ** 2).sum(-1) * weight).sum() / count
+        rotation_loss = (quaternion_loss(prediction.quaternion, target[..., 3:7]) * weight).sum() / count
+        gripper_loss = (
+            F.binary_cross_entropy_with_logits(prediction.open_logit, target[..., 7], reduction="none")
+            * weight
+        ).sum() / count
+        loss = (
+            self.config.position_loss_weight * position_loss
+            + self.config.rotation_loss_weight * rotation_loss
+            + self.config.gripper_loss_weight * gripper_loss
+        )
+        return loss, {
+            "position_loss": position_loss.item(),
+            "rotation_loss": rotation_loss.item(),
+            "gripper_loss": gripper_loss.item(),
+            "total_loss": loss.item(),
+        }
+
+    @torch.no_grad()
+    def predict_action_chunk(self, batch: dict) -> Tensor:
+        """(B, 1, 8): the next keyframe for the newest step, using and extending the rollout history."""
+        self.eval()
+        obs = keyframe_observations(batch, self.config)
+        current = _last_step(obs)
+        encoded = self.model.encode_steps(current)
+        self._history.append(encoded.tokens[:, 0])
+        window = torch.stack(list(self._history), dim=1)  # (B, T', N, D)
+        step_valid = torch.ones(window.shape[:2], dtype=torch.bool, device=window.device)
+        instruction, instruction_mask = self._encode_instructions(obs.instructions, window.device)
+        context = self.model.contextualise(
+            window, step_valid, instruction, instruction_mask, last_step_only=True
+        )
+        prediction = self.model.decode_steps(context, encoded, current)
+        return prediction.action()
+
+    @torch.no_grad()
+    def select_action(self, batch: dict) -> Tensor:
+        """(B, 8) = [x, y, z, qx, qy, qz, qw, open] for the current keyframe step."""
+        return self.predict_action_chunk(batch)[:, 0]
+
+
+def supervised_steps(batch: dict, target: Tensor) -> Tensor:
+    """(B, T) bool: steps that are neither history padding nor padded targets."""
+    supervised = torch.ones(target.shape[:2], dtype=torch.bool, device=target.device)
+    for key in (OBS_STATE + "_is_pad", ACTION + "_is_pad"):
+        if key in batch:
+            pad = batch[key].bool()
+            supervised &= ~(pad if pad.dim() == 2 else pad.unsqueeze(1))
+    return supervised

@@ -1,0 +1,134 @@
+"""Measure HiveFormer's size and CPU speed at the paper's settings (3 cameras 128x128, history 6).
+
+    python policies/lerobot_policy_hiveformer/measure_compute.py [--batch-size 8] [--threads 2]
+
+The frozen text encoder has CLIP ViT-B/32's text architecture with random weights (saved to a temporary
+directory and loaded through `text_encoder_path`, the offline route), so no download is needed; the
+parameter counts are those of the real model.
+"""
+
+import argparse
+import json
+import tempfile
+import time
+
+import numpy as np
+import torch
+from lerobot.configs.types import FeatureType, PolicyFeature
+from transformers import CLIPTextConfig, CLIPTextModel
+
+from lerobot_policy_hiveformer import HiveformerConfig, HiveformerPolicy
+
+CAMERAS = ("left_shoulder", "right_shoulder", "wrist")
+
+
+def features(size: int) -> tuple[dict, dict]:
+    inputs = {}
+    for camera in CAMERAS:
+        inputs[f"observation.images.{camera}"] = PolicyFeature(FeatureType.VISUAL, (3, size, size))
+        inputs[f"observation.depth.{camera}"] = PolicyFeature(FeatureType.VISUAL, (3, size, size))
+        inputs[f"observation.calibration.{camera}"] = PolicyFeature(FeatureType.STATE, (20,))
+    inputs["observation.state"] = PolicyFeature(FeatureType.STATE, (15,))
+    return inputs, {"action": PolicyFeature(FeatureType.ACTION, (8,))}
+
+
+def calibration(camera_index: int, size: int) -> torch.Tensor:
+    """A camera 0.6-0.8 m above the table looking down (OpenCV axes)."""
+    focal = 1.1 * size
+    world_from_camera = np.diag([1.0, -1.0, -1.0, 1.0])
+    world_from_camera[:3, 3] = [0.1 * camera_index, 0.0, 0.6 + 0.1 * camera_index]
+    return torch.tensor([focal, focal, (size - 1) / 2, (size - 1) / 2, *world_from_camera.reshape(-1)])
+
+
+def observation_batch(batch_size: int, steps: int | None, size: int) -> dict:
+    """Random RGB, a flat table 0.6-0.8 m away as packed depth, real-looking calibration and state."""
+    lead = (batch_size,) if steps is None else (batch_size, steps)
+    batch = {}
+    for i, camera in enumerate(CAMERAS):
+        mm = torch.full((*lead, size, size), 600.0 + 100 * i)
+        depth = torch.stack([torch.div(mm, 256, rounding_mode="floor"), mm % 256, torch.zeros_like(mm)], -3)
+        batch[f"observation.images.{camera}"] = torch.rand(*lead, 3, size, size)
+        batch[f"observation.depth.{camera}"] = depth / 255.0
+        batch[f"observation.calibration.{camera}"] = calibration(i, size).float().expand(*lead, 20).clone()
+    state = torch.zeros(*lead, 15)
+    state[..., :3] = torch.rand(*lead, 3) * 0.2
+    state[..., 6] = 1.0
+    batch["observation.state"] = state
+    batch["task"] = ["push the maroon button"] * batch_size
+    if steps is not None:
+        batch["observation.state_is_pad"] = torch.zeros(batch_size, steps, dtype=torch.bool)
+        action = torch.zeros(batch_size, steps, 8)
+        action[..., 6] = 1.0
+        batch["action"] = action
+        batch["action_is_pad"] = torch.zeros(batch_size, steps, dtype=torch.bool)
+    return batch
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument("--batch-size", type=int, default=8)
+    parser.add_argument("--image-size", type=int, default=128)
+    parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--train-steps", type=int, default=5)
+    parser.add_argument("--rollout-steps", type=int, default=20)
+    args = parser.parse_args()
+    torch.set_num_threads(args.threads)
+    torch.manual_seed(0)
+
+    with tempfile.TemporaryDirectory() as clip_dir:
+        CLIPTextModel(CLIPTextConfig()).save_pretrained(clip_dir)  # ViT-B/32 text architecture
+        inputs, outputs = features(args.image_size)
+        config = HiveformerConfig(
+            device="cpu",
+            text_encoder="clip",
+            text_encoder_path=clip_dir,
+            input_features=inputs,
+            output_features=outputs,
+        )
+        policy = HiveformerPolicy(config)
+    trainable = sum(p.numel() for p in policy.parameters() if p.requires_grad)
+    frozen = sum(p.numel() for p in policy.instruction_encoder.text_model.parameters())
+
+    optimizer = torch.optim.AdamW(policy.get_optim_params(), lr=config.optimizer_lr)
+    batch = observation_batch(args.batch_size, config.n_history, args.image_size)
+    policy.train()
+    durations = []
+    for _ in range(args.train_steps + 1):
+        start = time.perf_counter()
+        loss, _ = policy.forward(batch)
+        optimizer.zero_grad()
+        loss.backward()
+        optimizer.step()
+        durations.append(time.perf_counter() - start)
+    train_step_s = float(np.median(durations[1:]))  # the first step also encodes the instruction
+
+    policy.reset()
+    durations = []
+    for _ in range(args.rollout_steps):
+        observation = observation_batch(1, None, args.image_size)
+        start = time.perf_counter()
+        policy.select_action(observation)
+        durations.append(time.perf_counter() - start)
+    inference_ms = 1000 * float(np.median(durations[config.n_history :]))
+
+    print(
+        json.dumps(
+            {
+                "trainable_parameters": trainable,
+                "frozen_text_encoder_parameters": frozen,
+                "train_step_s": round(train_step_s, 3),
+                "train_batch_size": args.batch_size,
+                "inference_ms_per_step_with_full_history": round(inference_ms, 1),
+                "n_history": config.n_history,
+                "image_size": args.image_size,
+                "threads": args.threads,
+            },
+            indent=2,
+        )
+    )
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,235 @@
+"""HiveFormer policy plugin on a tiny keyframe dataset written in the converter's format."""
+
+import math
+
+import pytest
+import torch
+from hiveformer_fixtures import (
+    EPISODE_LENGTHS,
+    history_batch,
+    tiny_config,
+    tiny_dataset_root,
+    write_tiny_dataset,
+)
+from lerobot.policies.factory import make_policy, make_pre_post_processors
+from lerobot_policy_hiveformer import HiveformerConfig, HiveformerPolicy
+from lerobot_policy_hiveformer.modeling_hiveformer import (
+    ClipInstructionEncoder,
+    gripper_mark,
+    keyframe_observations,
+    project_to_pixels,
+    quaternion_loss,
+    tiny_random_clip_text_model,
+)
+
+__all__ = ["tiny_dataset_root"]  # the fixture is used by name
+
+EPISODE_STARTS = [sum(EPISODE_LENGTHS[:i]) for i in range(len(EPISODE_LENGTHS))]
+
+
+def make_tiny_policy(root, **overrides) -> HiveformerPolicy:
+    config, meta = tiny_config(root, **overrides)
+    return make_policy(config, ds_meta=meta)
+
+
+def single_step(batch: dict, step: int) -> dict:
+    """The observation of history step `step` as a rollout would deliver it: (B, ...) without time."""
+    single = {}
+    for key, value in batch.items():
+        if key.startswith("observation.") and not key.endswith("_is_pad"):
+            single[key] = value[:, step]
+    single["task"] = batch["task"]
+    return single
+
+
+def test_point_cloud_rebuilds_the_table_plane(tiny_dataset_root):
+    config, _ = tiny_config(tiny_dataset_root)
+    obs = keyframe_observations(history_batch(tiny_dataset_root, config, [0, 7]), config)
+    heights = obs.points[:, :, :, 2][obs.valid_pixels]  # every hit is on the table z = 0
+    assert obs.valid_pixels.float().mean() > 0.5
+    assert heights.abs().max() < 2e-3
+
+
+def test_gripper_mark_peaks_at_the_projected_gripper(tiny_dataset_root):
+    config, _ = tiny_config(tiny_dataset_root)
+    obs = keyframe_observations(history_batch(tiny_dataset_root, config, [3]), config)
+    calibration = obs.calibration[0, -1, 0]  # left shoulder camera
+    point = obs.points[0, -1, 0, :, 20, 11]  # the table point seen at row 20, column 11
+    uv, in_front = project_to_pixels(point, calibration)
+    assert in_front and torch.allclose(uv, torch.tensor([11.0, 20.0]), atol=0.1)
+    mark = gripper_mark(point, calibration, 32, 32, sigma_px=2.0)[0]
+    assert divmod(int(mark.argmax()), 32) == (20, 11)
+    behind = gripper_mark(2 * calibration[4:].view(4, 4)[:3, 3] - point, calibration, 32, 32, 2.0)
+    assert behind.max() == 0
+
+
+def test_the_tokenizer_is_clips_and_needs_no_download():
+    encoder = ClipInstructionEncoder(tiny_random_clip_text_model())
+    tokens = encoder.tokenizer(["a photo of a cat"], context_length=77)[0]
+    # The ids openai/clip-vit-base-patch32's tokenizer gives (start, words, end).
+    assert tokens[:7].tolist() == [49406, 320, 1125, 539, 320, 2368, 49407]
+    features, mask = encoder.encode(["a photo of a cat", "push the maroon button", "a photo of a cat"])
+    assert features.shape == (3, 7, 64) and mask.sum(1).tolist() == [7, 6, 7]
+    assert torch.equal(features[0], features[2])
+
+
+def test_output_shapes(tiny_dataset_root):
+    policy = make_tiny_policy(tiny_dataset_root).eval()
+    batch = history_batch(tiny_dataset_root, policy.config, [0, 6, 12])
+    with torch.no_grad():
+        prediction = policy.predict_keyframes(batch)
+    assert prediction.position.shape == (3, 3, 3)
+    assert prediction.quaternion.shape == (3, 3, 4)
+    assert torch.allclose(prediction.quaternion.norm(dim=-1), torch.ones(3, 3))
+    assert prediction.open_logit.shape == (3, 3)
+    assert prediction.pixel_attention.shape == (3, 3, 3, 32, 32)
+    assert torch.allclose(prediction.pixel_attention.sum(dim=(2, 3, 4)), torch.ones(3, 3))
+    action = policy.select_action(single_step(batch, -1))
+    assert action.shape == (3, 8) and set(action[:, 7].tolist()) <= {0.0, 1.0}
+
+
+def test_later_steps_do_not_change_earlier_predictions(tiny_dataset_root):
+    policy = make_tiny_policy(tiny_dataset_root).eval()
+    batch = history_batch(tiny_dataset_root, policy.config, [7])  # episode 1, keyframes 1..3: no padding
+    assert not batch["observation.state_is_pad"].any()
+    changed = dict(batch)
+    for key in ("observation.images.wrist", "observation.images.left_shoulder", "observation.state"):
+        changed[key] = batch[key].clone()
+        changed[key][:, -1] = torch.rand_like(changed[key][:, -1])
+    with torch.no_grad():
+        original, perturbed = policy.predict_keyframes(batch), policy.predict_keyframes(changed)
+    assert torch.equal(original.position[:, :-1], perturbed.position[:, :-1])
+    assert torch.equal(original.quaternion[:, :-1], perturbed.quaternion[:, :-1])
+    assert not torch.allclose(original.position[:, -1], perturbed.position[:, -1])
+
+
+def test_quaternion_loss_is_sign_invariant(tiny_dataset_root):
+    q = torch.nn.functional.normalize(torch.randn(5, 4), dim=-1)
+    predicted = torch.nn.functional.normalize(torch.randn(5, 4), dim=-1)
+    assert torch.allclose(quaternion_loss(predicted, q), quaternion_loss(predicted, -q))
+    assert torch.allclose(quaternion_loss(q, -q), torch.zeros(5))
+
+    policy = make_tiny_policy(tiny_dataset_root).eval()
+    batch = history_batch(tiny_dataset_root, policy.config, [2, 9])
+    flipped = dict(batch)
+    flipped["action"] = batch["action"].clone()
+    flipped["action"][..., 3:7] *= -1
+    with torch.no_grad():
+        _, losses = policy.forward(batch)
+        _, flipped_losses = policy.forward(flipped)
+    assert losses["rotation_loss"] == pytest.approx(flipped_losses["rotation_loss"], rel=1e-6)
+    assert set(losses) == {"position_loss", "rotation_loss", "gripper_loss", "total_loss"}
+
+
+def test_padded_history_steps_are_ignored(tiny_dataset_root):
+    policy = make_tiny_policy(tiny_dataset_root).eval()
+    batch = history_batch(tiny_dataset_root, policy.config, [0])  # first keyframe: two padded steps
+    assert batch["observation.state_is_pad"][0].tolist() == [True, True, False]
+    changed = dict(batch)
+    changed["action"] = batch["action"].clone()
+    changed["action"][:, :2] += 10.0
+    changed["observation.images.wrist"] = batch["observation.images.wrist"].clone()
+    changed["observation.images.wrist"][:, :2] = 0.5
+    with torch.no_grad():
+        loss, _ = policy.forward(batch)
+        changed_loss, _ = policy.forward(changed)
+    assert torch.allclose(loss, changed_loss)
+
+
+@pytest.mark.parametrize("num_layers", [1, 2])
+def test_select_action_with_its_own_history_matches_training_windows(tiny_dataset_root, num_layers):
+    policy = make_tiny_policy(tiny_dataset_root, num_layers=num_layers).eval()
+    start, length = EPISODE_STARTS[3], EPISODE_LENGTHS[3]
+    windows = history_batch(tiny_dataset_root, policy.config, list(range(start, start + length)))
+    with torch.no_grad():
+        expected = policy.predict_keyframes(windows).action()[:, -1]  # (length, 8)
+    policy.reset()
+    for step in range(length):
+        observation = {k: v[step : step + 1] for k, v in single_step(windows, -1).items() if k != "task"}
+        observation["task"] = windows["task"][step : step + 1]
+        action = policy.select_action(observation)
+        assert torch.allclose(action[0], expected[step], atol=1e-5), step
+
+
+def test_tiny_model_overfits_a_few_episodes(tiny_dataset_root):
+    torch.manual_seed(0)
+    policy = make_tiny_policy(tiny_dataset_root, n_history=2).train()
+    batch = history_batch(tiny_dataset_root, policy.config, range(sum(EPISODE_LENGTHS[:2])))
+    optimizer = torch.optim.AdamW(policy.get_optim_params(), lr=3e-3)
+    losses = []
+    for _ in range(150):
+        loss, _ = policy.forward(batch)
+        optimizer.zero_grad()
+        loss.backward()
+        optimizer.step()
+        losses.append(loss.item())
+        if losses[-1] < losses[0] / 10:
+            break
+    assert math.isfinite(losses[-1])
+    assert losses[-1] < losses[0] / 10, (len(losses), losses[0], losses[-5:])
+
+
+def test_save_and_load_give_identical_outputs(tiny_dataset_root, tmp_path):
+    policy = make_tiny_policy(tiny_dataset_root).eval()
+    batch = history_batch(tiny_dataset_root, policy.config, [4, 11])
+    preprocessor, postprocessor = make_pre_post_processors(policy.config, dataset_stats=None)
+    policy.save_pretrained(tmp_path)
+    preprocessor.save_pretrained(tmp_path)
+    postprocessor.save_pretrained(tmp_path)
+
+    reloaded = HiveformerPolicy.from_pretrained(tmp_path)
+    reloaded_pre, reloaded_post = make_pre_post_processors(reloaded.config, pretrained_path=str(tmp_path))
+    assert [step.__class__ for step in reloaded_pre.steps] == [step.__class__ for step in preprocessor.steps]
+    with torch.no_grad():
+        original = policy.predict_keyframes(batch)
+        loaded = reloaded.predict_keyframes(reloaded_pre(batch))
+    assert torch.equal(original.position, loaded.position)
+    assert torch.equal(original.quaternion, loaded.quaternion)
+    assert torch.equal(original.open_logit, loaded.open_logit)
+
+
+@pytest.mark.parametrize(
+    "ablation",
+    [
+        {"use_history": False},
+        {"instruction_as_sequence": False},
+        {"text_encoder": "one_hot"},
+        {"use_position_embeddings": False},
+    ],
+)
+def test_ablations_train_and_act(tiny_dataset_root, ablation):
+    policy = make_tiny_policy(tiny_dataset_root, **ablation)
+    expected_steps = 1 if ablation.get("use_history") is False else 3
+    assert policy.config.observation_delta_indices == list(range(1 - expected_steps, 1))
+    batch = history_batch(tiny_dataset_root, policy.config, [1, 8])
+    loss, _ = policy.forward(batch)
+    loss.backward()
+    assert math.isfinite(loss.item())
+    if ablation.get("text_encoder") == "one_hot":
+        assert policy.config.instruction_vocabulary == sorted(
+            ["push the maroon button", "stack 2 navy blocks"]
+        )
+    assert policy.select_action(single_step(batch, -1)).shape == (2, 8)
+
+
+def test_missing_depth_feature_is_named(tmp_path):
+    root = tmp_path / "no_wrist_depth"
+    write_tiny_dataset(root, episode_lengths=(2,), drop_features=("observation.depth.wrist",))
+    config, meta = tiny_config(root)
+    with pytest.raises(ValueError, match=r"observation\.depth\.wrist"):
+        make_policy(config, ds_meta=meta)
+
+
+def test_clip_without_weights_says_how_to_point_to_a_local_copy(tiny_dataset_root, tmp_path):
+    for path in (tmp_path / "missing", tmp_path):
+        with pytest.raises(OSError, match="--policy.text_encoder_path"):
+            make_tiny_policy(tiny_dataset_root, text_encoder="clip", text_encoder_path=str(path))
+
+
+def test_config_rejects_bad_values():
+    with pytest.raises(ValueError, match="text_encoder"):
+        HiveformerConfig(text_encoder="bert", device="cpu")
+    with pytest.raises(ValueError, match="num_heads"):
+        HiveformerConfig(hidden_dim=60, num_heads=8, device="cpu")
+    with pytest.raises(ValueError, match="IDENTITY"):
+        HiveformerConfig(normalization_mapping={"STATE": "MEAN_STD"}, device="cpu")
