@@ -1,0 +1,18 @@
+"""MCAP episode recordings → LeRobot v3.0 datasets, one per split, with a dataset card."""
+
+from demo_factory.convert.converter import ConvertError, ConvertOptions, ConvertResult, convert
+from demo_factory.convert.features import dataset_features, pack_depth, unpack_depth, world_points
+from demo_factory.convert.splits import SPLITS, split_repo_id
+
+__all__ = [
+    "SPLITS",
+    "ConvertError",
+    "ConvertOptions",
+    "ConvertResult",
+    "convert",
+    "dataset_features",
+    "pack_depth",
+    "split_repo_id",
+    "unpack_depth",
+    "world_points",
+]

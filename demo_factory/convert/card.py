@@ -1,0 +1,262 @@
+"""The dataset card (README.md from ``dataset_cards/template.md``) and its contact-sheet picture."""
+
+from __future__ import annotations
+
+import re
+import shlex
+import statistics
+from pathlib import Path
+from string import Template
+from typing import TYPE_CHECKING
+
+import cv2
+import numpy as np
+
+from demo_factory.convert.features import ACTION_NAMES, CALIBRATION_NAMES, KEYFRAME_FPS, STATE_NAMES
+from demo_factory.convert.splits import SplitPlan, SourceEpisode
+from demo_factory.convert.usage import act_train_args, act_train_command, load_command
+from demo_factory.instructions import COLOUR_SYNONYMS
+from demo_factory.record import read_episode
+from demo_factory.tasks import TASKS, get_task
+
+if TYPE_CHECKING:
+    from demo_factory.convert.converter import ConvertResult
+
+TEMPLATE = Path(__file__).resolve().parents[2] / "dataset_cards" / "template.md"
+CONTACT_SHEET = "contact_sheet.png"
+LABEL_WIDTH = 190
+
+
+def write_card(root: Path, result: ConvertResult, plans: dict[str, SplitPlan], template: Path = TEMPLATE) -> Path:
+    """Write ``README.md`` and the contact sheet into the output folder ``root``."""
+    cv2.imwrite(str(root / CONTACT_SHEET), cv2.cvtColor(contact_sheet(plans, result.cameras), cv2.COLOR_RGB2BGR))
+    path = root / "README.md"
+    path.write_text(render_card(result, template), encoding="utf-8")
+    return path
+
+
+def contact_sheet(plans: dict[str, SplitPlan], cameras: list[str]) -> np.ndarray:
+    """(H, W, 3) RGB: one row per written split (its first episode's first frame), one column per camera."""
+    rows = []
+    for name, plan in plans.items():
+        if not plan.episodes:
+            continue
+        episode = read_episode(plan.episodes[0].source.path)
+        first = episode.frames[0]
+        images = [first.cameras[c].rgb for c in cameras]
+        height = images[0].shape[0]
+        scale = max(1, 128 // height)
+        images = [cv2.resize(im, None, fx=scale, fy=scale, interpolation=cv2.INTER_NEAREST) for im in images]
+        label = np.full((images[0].shape[0], LABEL_WIDTH, 3), 255, np.uint8)
+        cv2.putText(label, name, (6, label.shape[0] // 2 + 5), cv2.FONT_HERSHEY_SIMPLEX, 0.45, (0, 0, 0), 1, cv2.LINE_AA)
+        rows.append(np.concatenate([label, *images], axis=1))
+    header = np.full((24, rows[0].shape[1], 3), 255, np.uint8)
+    column = rows[0].shape[1] - LABEL_WIDTH
+    for i, camera in enumerate(cameras):
+        x = LABEL_WIDTH + i * column // len(cameras) + 6
+        cv2.putText(header, camera, (x, 16), cv2.FONT_HERSHEY_SIMPLEX, 0.45, (0, 0, 0), 1, cv2.LINE_AA)
+    return np.concatenate([header, *rows], axis=0)
+
+
+def _stats(sources: list[SourceEpisode], invalid: int, generation: list[dict]) -> str:
+    attempts = [a for s in sources for a in s.planner_attempts]
+    keyframes = [s.keyframes for s in sources]
+    lines = [
+        f"- recordings converted: {len(sources)} ({sum(s.split == 'train' for s in sources)} of train variations, "
+        f"{sum(s.split == 'test' for s in sources)} of test variations); left out: {invalid}",
+    ]
+    for g in generation:
+        failures = ", ".join(f"{k}: {v}" for k, v in g.get("failure_reasons", {}).items()) or "none"
+        requested = g.get("requested") or 0
+        lines.append(f"- expert success rate, {g.get('task')}/{g.get('split')}: {g.get('kept')} of {requested} "
+                     f"episodes kept = {100.0 * (g.get('kept') or 0) / max(requested, 1):.1f}% (failures: {failures}; "
+                     "the generator records only episodes whose success check passed)")
+    if not generation:
+        lines.append("- expert success rate: no `generation_summary_*.json` beside the recordings; every converted "
+                     "recording passed its success check (the generator keeps only those)")
+    lines.append(f"- keyframes per episode: mean {statistics.mean(keyframes):.1f}, min {min(keyframes)}, max {max(keyframes)}")
+    if attempts:
+        lines.append(
+            f"- OMPL planner attempts per planned transition: mean {statistics.mean(attempts):.2f}, max {max(attempts)}, "
+            f"solved at the first attempt {100.0 * sum(a == 1 for a in attempts) / len(attempts):.1f}% "
+            f"({len(attempts)} planned transitions, {sum(attempts)} attempts, "
+            f"{sum(s.exact_attempts for s in sources)} exact solutions)"
+        )
+    versions = sorted({v for s in sources for v in s.versions})
+    if versions:
+        lines.append("- recorded with " + ", ".join(f"{name} {version}" for name, version in versions))
+    return "\n".join(lines)
+
+
+def _feature_rows(cameras: list[str], image_size: tuple[int, int]) -> str:
+    h, w = image_size
+    rows = []
+    for c in cameras:
+        rows.append(f"| `observation.images.{c}` | image (PNG) | ({h}, {w}, 3) | RGB, uint8 |")
+        rows.append(f"| `observation.depth.{c}` | image (PNG) | ({h}, {w}, 3) | depth in mm packed R = mm // 256, G = mm % 256, B = 0 |")
+        rows.append(f"| `observation.calibration.{c}` | float32 | (20,) | fx, fy, cx, cy, world-from-camera 4×4 row-major (OpenCV axes) |")
+    rows += [
+        f"| `observation.state` | float32 | (15,) | {', '.join(STATE_NAMES)} (gripper grasp frame, world = robot base frame, metres; open 1 / closed 0; joints in rad) |",
+        f"| `action` | float32 | (8,) | {', '.join(ACTION_NAMES)}: the next keyframe's target pose and gripper command (the last keyframe repeats its own) |",
+        "| `variation_id` | int64 | (1,) | the variation's id in the task's enumeration |",
+        "| `keyframe_index` | int64 | (1,) | the keyframe reached at (or last reached before) this frame; 0 = initial state |",
+        "| `timestamp`, `frame_index`, `episode_index`, `index`, `task_index` | | | LeRobot's own |",
+    ]
+    assert len(CALIBRATION_NAMES) == 20
+    return "\n".join(rows)
+
+
+def render_card(result: ConvertResult, template: Path = TEMPLATE) -> str:
+    """The card's markdown text for a conversion result."""
+    task = get_task(result.task) if result.task in TASKS else None
+    frames_total = sum(s.frames for s in result.splits)
+    split_rows = "\n".join(
+        f"| `{s.name}` | `{s.repo_id}` | {s.episodes} | {s.frames} | {s.variations} | {s.instruction_source} |"
+        for s in result.splits
+    )
+    skipped = "\n".join(f"Not written: `{name}`, {why}." for name, why in result.skipped_splits)
+    configs = "\n".join(f"  - split: {s.name}\n    path: {s.name}/data/*/*.parquet" for s in result.splits)
+    example = ""
+    if task is not None:
+        v = task.split_variations("train")[len(task.split_variations("train")) // 2]
+        example = "; ".join(f'"{t}"' for t in task.synthetic_instructions(v))
+        task_text = (f"{task.description} Palette ({len(task.palette)} colours): {', '.join(task.palette)}. "
+                     f"Synthetic instruction templates, e.g. for {', '.join(v.colours)}: {example}.")
+    else:
+        task_text = result.task
+    assignment = result.human_assignment
+    human_note = ""
+    if assignment is not None:
+        human_note = (f"Rows used: {len({id(r) for _, r in assignment.pairs})}; rows of variations without "
+                      f"recordings: {len(assignment.rows_without_episodes)}; test episodes of variations without "
+                      f"rows (left out of this split): {len(assignment.episodes_without_rows)}.")
+    train = next((s for s in result.splits if s.name == "train"), result.splits[0])
+    root = Path(result.out) / train.name
+    invalid = ""
+    if result.invalid:
+        invalid = "## Recordings left out\n\n" + "\n".join(f"- `{p.name}`: {why}" for p, why in result.invalid)
+    size = "n<1K" if frames_total < 1_000 else "1K<n<10K" if frames_total < 10_000 else "10K<n<100K"
+    mapping = {
+        "task": result.task,
+        "task_description": task.description.rstrip(".").lower() if task else result.task,
+        "pretty_name": f"{result.task} demonstrations ({result.granularity})",
+        "size_category": size,
+        "configs": configs,
+        "repo_id": result.repo_id,
+        "granularity": result.granularity,
+        "task_text": task_text,
+        "n_train_variations": len(task.split_variations("train")) if task else "?",
+        "n_test_variations": len(task.split_variations("test")) if task else "?",
+        "split_rows": split_rows,
+        "skipped_splits": skipped,
+        "corruption_table": ", ".join(f"{k} → {v}" for k, v in COLOUR_SYNONYMS.items()) + " (grey → ash as for gray)",
+        "human_file": Path(result.human_file).name if result.human_file else "(none)",
+        "human_note": human_note,
+        "frame_description": ("one observation per keyframe (keyframe 0 = the initial state)"
+                              if result.granularity == "keyframe" else "the dense frames at their recorded rate"),
+        "fps": result.fps,
+        "fps_note": (f"nominal: keyframes are not evenly spaced in time; timestamps are frame_index / {KEYFRAME_FPS}"
+                     if result.granularity == "keyframe" else "the recording's dense rate"),
+        "feature_rows": _feature_rows(result.cameras, result.image_size),
+        "n_cameras": len(result.cameras),
+        "width": result.image_size[1],
+        "height": result.image_size[0],
+        "camera_list": ", ".join(f"`{c}`" for c in result.cameras),
+        "generation_stats": _stats(result.sources, len(result.invalid), result.generation_summaries),
+        "load_command": load_command(train.repo_id, root),
+        "train_command": act_train_command(train.repo_id, root, result.cameras, result.image_size,
+                                           Path("outputs/train/act_" + result.task)),
+        "eval_command": eval_command(result.out, result.task),
+        "regenerate": "\n".join([
+            *(g["command"] for g in result.generation_summaries if g.get("command")),
+            *([] if result.generation_summaries else
+              ["# no generation_summary_*.json found: each episode's seed is in meta/info.json (demo_factory.episodes)"]),
+            result.command,
+        ]),
+        "invalid_section": invalid,
+    }
+    return Template(template.read_text(encoding="utf-8")).substitute(mapping)
+
+
+def eval_command(dataset: Path | str, task: str) -> str:
+    """Closed-loop evaluation of a trained checkpoint on every split's variations and instructions."""
+    return (f"demo-factory eval --policy.path outputs/train/act_{task}/checkpoints/last/pretrained_model "
+            f"--dataset {dataset} --out outputs/eval/act_{task}")
+
+
+# -- the card of one split's Hub repository -----------------------------------------------------
+HUB_URL = "https://huggingface.co/datasets/"
+LOAD_HEADING = "## Load, train and evaluate"  # as in the template
+TITLE = re.compile(r"^# (?P<repo_id>[\w.-]+/[\w.-]+): ", re.MULTILINE)  # the template's first heading
+
+
+def _sections(body: str) -> list[list[str]]:
+    """The body cut before each ``## `` heading: [[lines of the preamble], [## heading, lines], ...]."""
+    sections: list[list[str]] = [[]]
+    fenced = False
+    for line in body.splitlines():
+        if line.startswith("```"):
+            fenced = not fenced
+        if line.startswith("## ") and not fenced:
+            sections.append([])
+        sections[-1].append(line)
+    return sections
+
+
+def hub_card(card_text: str, repo_id: str, split: str, splits: list[str], cameras: list[str],
+             image_size: tuple[int, int], publish_command: str) -> str:
+    """The converter's card (``OUT/README.md``) made into the card of split ``split``'s Hub repo.
+
+    The repo ``<repo_id>_<split>`` holds one split in LeRobot's standard layout, so its YAML
+    ``configs`` point at ``data/*/*.parquet``; the repo ids become ``repo_id``'s, the other splits are
+    linked, loading and training read from the Hub (no ``root``) and the regeneration recipe ends
+    with the publish command.
+    """
+    from huggingface_hub import DatasetCard
+
+    card = DatasetCard(card_text)
+    title = TITLE.search(card.text)
+    if title is None:
+        raise ValueError("the dataset card has no '# owner/name: ...' title; re-run demo-factory convert")
+    body = card.text.replace(title["repo_id"], repo_id)
+    this = f"{repo_id}_{split}"
+    card.data.configs = [{"config_name": "default", "data_files": [{"split": split, "path": "data/*/*.parquet"}]}]
+    card.data.pretty_name = f"{card.data.pretty_name or repo_id}, split {split}"
+
+    others = ", ".join(f"[`{s}`]({HUB_URL}{repo_id}_{s})" for s in splits if s != split) or "none"
+    here = (f"**This repository holds the `{split}` split** as a LeRobot v3.0 dataset (tag `v3.0`). "
+            f"The dataset's other splits are repositories of their own: {others}.")
+    height, width = image_size
+    args = act_train_args(this, Path("."), cameras, image_size, Path(f"outputs/train/act_{repo_id.split('/')[1]}"))
+    train = " ".join(shlex.quote(a) for a in args if not a.startswith("--dataset.root="))
+    code = f'from lerobot.datasets.lerobot_dataset import LeRobotDataset as D; print(D("{this}"))'
+    load_section = [
+        LOAD_HEADING, "",
+        "```bash",
+        f"python -c {shlex.quote(code)}",
+        train,
+        "```", "",
+        f"LeRobot downloads the split from the Hub at the `v3.0` tag (no `root` needed). The `lerobot-train` line "
+        f"trains LeRobot's built-in ACT policy on it on a CPU: no pretrained backbone download, no Hub push, no "
+        f"Weights & Biases, and ACT's inputs restricted to the {len(cameras)} RGB cameras ({height}×{width}) and "
+        "the state (it would otherwise take the packed depth images for more cameras). To evaluate a trained "
+        "policy in closed loop on every split's variations and instructions, regenerate the dataset (below) and "
+        "run `demo-factory eval --policy.path <checkpoint>/pretrained_model --dataset <converted folder> --out <folder>`.",
+        "",
+    ]
+    sections = _sections(body)
+    for i, section in enumerate(sections):
+        heading = section[0] if section else ""
+        if i == 0:
+            at = next(j for j, line in enumerate(section) if TITLE.match(line) or line.startswith(f"# {repo_id}:"))
+            section[at] = f"# {this}:{section[at].split(':', 1)[1]}, split `{split}`"
+            section[at + 1:at + 1] = ["", here]
+        elif heading == "## Splits":
+            sections[i] = [re.sub(rf"`({re.escape(repo_id)}_(\w+))`", rf"[`\1`]({HUB_URL}\1)", line) for line in section]
+        elif heading == LOAD_HEADING:
+            sections[i] = load_section
+        elif heading == "## Regenerate":
+            close = max(j for j, line in enumerate(section) if line.startswith("```"))
+            section.insert(close, publish_command)
+    card.text = "\n".join(line for section in sections for line in section) + "\n"
+    return str(card)

@@ -1,0 +1,104 @@
+"""``demo-factory convert``: MCAP recordings → LeRobot datasets, one per split, with a card."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from demo_factory.convert.converter import ConvertError, ConvertOptions, ConvertResult, convert
+from demo_factory.convert.features import GRANULARITIES
+from demo_factory.convert.usage import act_train_command, load_command
+
+EXIT_USAGE = 2
+
+
+def add_parser(subparsers) -> argparse.ArgumentParser:
+    """Register the ``convert`` sub-command on an argparse ``subparsers`` object."""
+    parser = subparsers.add_parser(
+        "convert",
+        help="convert MCAP episode recordings to LeRobot v3.0 datasets (one per split) with a dataset card",
+        description=(
+            "Writes OUT/{train,val,test_unseen_synthetic,test_unseen_corrupted,test_unseen_human}/, each a "
+            "LeRobot v3.0 dataset with repo id REPO_ID_<split>, plus OUT/README.md (the dataset card). "
+            "Splits without episodes are skipped."
+        ),
+    )
+    parser.add_argument("--in", dest="inputs", type=Path, nargs="+", required=True, metavar="PATH",
+                        help="folders of .mcap recordings (searched recursively) or .mcap files")
+    parser.add_argument("--out", type=Path, required=True, help="output folder (must not exist unless --overwrite)")
+    parser.add_argument("--repo-id", help="Hub repo id owner/name; each split gets owner/name_<split> "
+                                          "(default: local/<name of --out>)")
+    parser.add_argument("--granularity", default="keyframe", choices=GRANULARITIES,
+                        help="one frame per keyframe (default), or the recorded dense frames")
+    parser.add_argument("--val-ratio", type=float, default=0.1,
+                        help="fraction of train-variation episodes held out for val (default 0.1)")
+    parser.add_argument("--human-instructions", type=Path, metavar="FILE",
+                        help="JSONL file of human-written instructions for test variations "
+                             "(default: the file shipped with demo_factory for the task)")
+    parser.add_argument("--task", help="convert only this task's recordings (needed when the inputs mix tasks)")
+    parser.add_argument("--skip-invalid", action="store_true",
+                        help="leave out truncated, corrupt or inconsistent recordings (listed in the summary and card)")
+    parser.add_argument("--overwrite", action="store_true", help="replace an existing output folder")
+    parser.add_argument("--no-progress", dest="progress", action="store_false", help="no progress bars")
+    parser.set_defaults(run=run)
+    return parser
+
+
+def run(args: argparse.Namespace) -> int:
+    """Run the sub-command; user errors print one line and return exit code 2."""
+    options = ConvertOptions(
+        inputs=list(args.inputs), out=args.out, repo_id=args.repo_id or f"local/{args.out.resolve().name}",
+        granularity=args.granularity, val_ratio=args.val_ratio, human_instructions=args.human_instructions,
+        task=args.task, skip_invalid=args.skip_invalid, overwrite=args.overwrite, progress=args.progress,
+    )
+    try:
+        result = convert(options)
+    except ConvertError as exc:
+        print(f"demo-factory convert: error: {exc}", file=sys.stderr)
+        return EXIT_USAGE
+    print(summary(result))
+    return 0
+
+
+def summary(result: ConvertResult) -> str:
+    """What was written, what was left out, and how to load and train on it."""
+    lines = [f"\n{result.task}: {result.frames_written} frames written to {result.out} in {result.seconds:.1f} s "
+             f"({result.frames_written / max(result.seconds, 1e-9):.1f} frames/s)", ""]
+    lines.append(f"  {'split':<24}{'episodes':>9}{'frames':>8}  instructions  repo id")
+    for s in result.splits:
+        lines.append(f"  {s.name:<24}{s.episodes:>9}{s.frames:>8}  {s.instruction_source:<12}  {s.repo_id}")
+    for name, why in result.skipped_splits:
+        lines.append(f"  {name:<24}  skipped: {why}")
+    if result.human_assignment is not None:
+        a = result.human_assignment
+        if a.rows_without_episodes:
+            lines.append(f"  human instructions: {len(a.rows_without_episodes)} rows of {result.human_file} name "
+                         "test variations without recordings (unused)")
+        if a.episodes_without_rows:
+            lines.append(f"  human instructions: {len(a.episodes_without_rows)} test episodes have no row for their "
+                         "variation (not in test_unseen_human)")
+    if result.other_tasks:
+        lines.append("  other tasks' recordings ignored: " + ", ".join(f"{t} ({n})" for t, n in result.other_tasks.items()))
+    if result.invalid:
+        lines.append(f"  recordings left out ({len(result.invalid)}):")
+        lines += [f"    {p}: {why}" for p, why in result.invalid]
+    train = next((s for s in result.splits if s.name == "train"), result.splits[0])
+    root = result.out / train.name
+    lines += ["", f"Dataset card: {result.out / 'README.md'}", "Load a split:", "  " + load_command(train.repo_id, root),
+              "Train ACT on it (CPU, offline):",
+              "  " + act_train_command(train.repo_id, root, result.cameras, result.image_size,
+                                       Path("outputs/train/act_" + result.task))]
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Stand-alone entry (``python -m demo_factory.convert.cli``) until the main CLI wires it in."""
+    parser = argparse.ArgumentParser(prog="demo-factory")
+    add_parser(parser.add_subparsers(dest="command", required=True))
+    args = parser.parse_args(argv)
+    return args.run(args)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,389 @@
+"""MCAP episode recordings → one LeRobot v3.0 dataset per split, plus a dataset card.
+
+Two passes: every recording is read and checked first (so a bad file stops the run before anything
+is written), then each split is written with LeRobot's own writer into a hidden folder next to the
+output, which is moved into place only when everything succeeded.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import time
+from collections import Counter
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from tqdm import tqdm
+
+from demo_factory.convert.features import (
+    CALIBRATION_LAYOUT,
+    DEPTH_ENCODING,
+    GRANULARITIES,
+    KEYFRAME_FPS,
+    dataset_features,
+    dataset_frame,
+    episode_frames,
+)
+from demo_factory.convert.splits import SourceEpisode, SplitPlan, plan_splits, split_repo_id
+from demo_factory.instructions import HumanInstruction, load_human_instructions, shipped_human_instructions
+from demo_factory.instructions.human import HumanAssignment
+from demo_factory.record import Episode, RecordingError, iter_episode_paths, read_episode
+from demo_factory.tasks import TASKS, get_task
+
+IMAGE_WRITER_THREADS = 4  # PNG encoding in threads: the writer's bottleneck besides stats
+GENERATION_SUMMARIES = "generation_summary*.json"  # written by `demo-factory generate`, one per job
+
+
+class ConvertError(Exception):
+    """A problem the user can fix (bad option, bad input); the message is one line."""
+
+
+@dataclass
+class ConvertOptions:
+    inputs: list[Path]  # folders (searched recursively) or .mcap files
+    out: Path
+    repo_id: str
+    granularity: str = "keyframe"
+    val_ratio: float = 0.1
+    human_instructions: Path | None = None  # None: the file shipped for the task, if any
+    task: str | None = None  # None: the single task found in the inputs
+    skip_invalid: bool = False
+    overwrite: bool = False
+    progress: bool = True
+
+
+@dataclass
+class SplitSummary:
+    name: str
+    repo_id: str
+    instruction_source: str
+    episodes: int
+    frames: int
+    variations: int
+
+
+@dataclass
+class ConvertResult:
+    out: Path
+    repo_id: str
+    task: str
+    granularity: str
+    fps: int
+    cameras: list[str]
+    image_size: tuple[int, int]
+    splits: list[SplitSummary]
+    skipped_splits: list[tuple[str, str]]  # (split, why)
+    invalid: list[tuple[Path, str]]  # recordings left out with --skip-invalid
+    sources: list[SourceEpisode]
+    human_file: Path | None
+    human_assignment: HumanAssignment | None
+    seconds: float
+    frames_written: int
+    command: str  # the convert command line that reproduces this output
+    generation_summaries: list[dict] = field(default_factory=list)  # from the input folders
+    other_tasks: dict[str, int] = field(default_factory=dict)
+
+
+def find_recordings(inputs: list[Path]) -> list[Path]:
+    """Every complete recording under the inputs (folders recursively), sorted, without repeats."""
+    found: list[Path] = []
+    for item in inputs:
+        if item.is_file():
+            found.append(item)
+        elif item.is_dir():
+            for folder in [item, *sorted(p for p in item.rglob("*") if p.is_dir() and not p.name.startswith("."))]:
+                found += iter_episode_paths(folder)
+        else:
+            raise ConvertError(f"input {item} does not exist; expected a folder of .mcap recordings or a .mcap file")
+    unique = sorted({p.resolve(): p for p in found}.values())
+    if not unique:
+        raise ConvertError(f"no .mcap recordings found in {', '.join(map(str, inputs))}")
+    return unique
+
+
+def find_generation_summaries(inputs: list[Path]) -> list[dict]:
+    """The generator's summaries (command, requested, kept, failures) found in the input folders."""
+    summaries = []
+    for item in inputs:
+        if item.is_dir():
+            for path in sorted(item.rglob(GENERATION_SUMMARIES)):
+                try:
+                    summaries.append(json.loads(path.read_text(encoding="utf-8")))
+                except (OSError, ValueError):
+                    continue  # a damaged summary only costs the card its generation figures
+    return summaries
+
+
+def check_options(options: ConvertOptions) -> None:
+    """Refuse bad option values before any work, one line each."""
+    if options.granularity not in GRANULARITIES:
+        raise ConvertError(f"unknown granularity {options.granularity!r}; accepted: {', '.join(GRANULARITIES)}")
+    if not 0.0 <= options.val_ratio < 1.0:
+        raise ConvertError(f"--val-ratio {options.val_ratio} is out of range; accepted: 0 <= ratio < 1")
+    owner, _, name = options.repo_id.partition("/")
+    allowed = set("abcdefghijklmnopqrstuvwxyzABCDEFGHIJKLMNOPQRSTUVWXYZ0123456789-_.")
+    if not owner or not name or "/" in name or not set(owner + name) <= allowed:
+        raise ConvertError(f"--repo-id {options.repo_id!r} is not a Hub repo id; expected owner/name "
+                           "(letters, digits, '-', '_', '.')")
+    if options.task is not None and options.task not in TASKS:
+        raise ConvertError(f"unknown task {options.task!r}; accepted: {', '.join(sorted(TASKS))}")
+    out = options.out.resolve()
+    if out.exists() and not options.overwrite:
+        raise ConvertError(f"output {options.out} already exists; pass --overwrite to replace it")
+    if out.exists() and not out.is_dir():
+        raise ConvertError(f"output {options.out} is a file; expected a folder path")
+    for item in options.inputs:
+        if item.resolve() == out or out in item.resolve().parents:
+            raise ConvertError(f"input {item} lies inside the output {options.out}; choose another --out")
+    if options.human_instructions is not None and not options.human_instructions.is_file():
+        raise ConvertError(f"--human-instructions {options.human_instructions} is not a file")
+
+
+def _check_episode(episode: Episode, path: Path, granularity: str) -> None:
+    """Content checks a recording must pass to become dataset episodes (RecordingError otherwise)."""
+    info = episode.info
+    indices = [k.index for k in episode.keyframes]
+    if indices != list(range(len(indices))) or not indices:
+        raise RecordingError(f"{path}: keyframe markers {indices} are not 0..K-1")
+    if [f.keyframe_index for f in episode.keyframe_frames()] != indices:
+        raise RecordingError(f"{path}: keyframe observations do not match the {len(indices)} keyframe markers")
+    if granularity == "dense" and not episode.dense_frames():
+        raise RecordingError(f"{path}: no dense frames (recorded with dense_fps 0); "
+                             "convert with --granularity keyframe or generate with dense frames")
+    if info.task in TASKS:
+        task = get_task(info.task)
+        if info.split not in ("train", "test"):
+            raise RecordingError(f"{path}: unknown split {info.split!r}; accepted: train, test")
+        try:  # test recordings may be of named unseen variations, never of training ones (and vice versa)
+            task.check_split_membership(task.variation(info.variation_id), info.split)
+        except ValueError as exc:
+            raise RecordingError(f"{path}: {exc}") from None
+
+
+def _source(episode: Episode, path: Path, granularity: str) -> SourceEpisode:
+    info = episode.info
+    attempts = Counter(a.keyframe_index for a in info.planner_attempts)
+    return SourceEpisode(
+        path=path, task=info.task, split=info.split, variation_id=info.variation_id,
+        colours=tuple(info.variation), episode_seed=info.episode_seed, instruction=info.instruction,
+        frames=len(episode_frames(episode, granularity)),
+        keyframes=len(episode.keyframes),
+        planner_attempts=tuple(attempts[k] for k in sorted(attempts)),
+        exact_attempts=sum(a.status == "exact" for a in info.planner_attempts),
+        success=info.success,
+        versions=tuple(sorted(info.versions.items())),
+    )
+
+
+@dataclass
+class _Survey:
+    sources: list[SourceEpisode]
+    invalid: list[tuple[Path, str]]
+    other_tasks: dict[str, int]
+    task: str
+    cameras: list[str]
+    image_size: tuple[int, int]
+    fps: int
+
+
+def survey(paths: list[Path], options: ConvertOptions) -> _Survey:
+    """Read and check every recording; keep what the plan needs (pass 1)."""
+    sources: list[SourceEpisode] = []
+    layouts: dict[Path, tuple] = {}
+    invalid: list[tuple[Path, str]] = []
+    for path in tqdm(paths, desc="checking recordings", unit="file", disable=not options.progress):
+        try:
+            episode = read_episode(path)
+            _check_episode(episode, path, options.granularity)
+        except RecordingError as exc:
+            if not options.skip_invalid:
+                raise ConvertError(f"{exc} (pass --skip-invalid to leave such files out)") from None
+            invalid.append((path, str(exc).removeprefix(f"{path}: ")))
+            continue
+        sources.append(_source(episode, path, options.granularity))
+        info = episode.info
+        layouts[path] = (tuple(info.cameras), tuple(info.image_size), info.dense_fps)
+    tasks = Counter(s.task for s in sources)
+    if options.task is not None:
+        task = options.task
+        if task not in tasks:
+            raise ConvertError(f"no recordings of task {task!r} in the inputs (found: {_counts(tasks)})")
+    elif len(tasks) == 1:
+        task = next(iter(tasks))
+    elif not tasks:
+        raise ConvertError("no valid recordings left to convert")
+    else:
+        raise ConvertError(f"the inputs hold recordings of several tasks ({_counts(tasks)}); choose one with --task")
+    other_tasks = {t: n for t, n in tasks.items() if t != task}
+    sources = [s for s in sources if s.task == task]
+    first = sources[0].path
+    cameras, image_size, dense_fps = layouts[first]
+    kept = []
+    for s in sources:
+        if layouts[s.path] != layouts[first]:
+            problem = (f"cameras {list(layouts[s.path][0])}, image size {layouts[s.path][1]}, dense fps {layouts[s.path][2]} "
+                       f"differ from {first.name}'s {list(cameras)}, {image_size}, {dense_fps}")
+            if not options.skip_invalid:
+                raise ConvertError(f"{s.path}: {problem}; one dataset needs one layout (pass --skip-invalid to leave it out)")
+            invalid.append((s.path, problem))
+        elif not s.success:
+            invalid.append((s.path, "the expert did not succeed in this episode"))
+        else:
+            kept.append(s)
+    fps = KEYFRAME_FPS
+    if options.granularity == "dense":
+        fps = int(round(dense_fps))
+        if abs(dense_fps - fps) > 1e-6 or fps <= 0:
+            raise ConvertError(f"dense rate {dense_fps} fps of {first} is not a whole number; LeRobot needs integer fps")
+    return _Survey(kept, invalid, other_tasks, task, list(cameras), image_size, fps)
+
+
+def convert_command(options: ConvertOptions, task: str) -> str:
+    """The ``demo-factory convert`` command line for these options."""
+    inputs = " ".join(str(p) for p in options.inputs)
+    parts = [f"demo-factory convert --in {inputs} --out {options.out} --repo-id {options.repo_id}"]
+    if options.task is not None:
+        parts.append(f"--task {task}")
+    if options.granularity != "keyframe":
+        parts.append(f"--granularity {options.granularity}")
+    if options.val_ratio != ConvertOptions.val_ratio:
+        parts.append(f"--val-ratio {options.val_ratio}")
+    if options.human_instructions is not None:
+        parts.append(f"--human-instructions {options.human_instructions}")
+    if options.skip_invalid:
+        parts.append("--skip-invalid")
+    return " ".join(parts)
+
+
+def _counts(counter: Counter) -> str:
+    return ", ".join(f"{k}: {v}" for k, v in sorted(counter.items()))
+
+
+def _load_human_rows(options: ConvertOptions, task: str) -> tuple[Path | None, list[HumanInstruction] | None]:
+    path = options.human_instructions or shipped_human_instructions(task)
+    if path is None:
+        return None, None
+    try:
+        rows = [r for r in load_human_instructions(path) if r.task == task]
+    except ValueError as exc:
+        raise ConvertError(str(exc)) from None
+    return path, rows
+
+
+def write_split(plan: SplitPlan, root: Path, repo_id: str, survey_: _Survey, granularity: str,
+                progress: tqdm | None = None) -> SplitSummary:
+    """Write one split as a LeRobot dataset at ``root`` (which must not exist)."""
+    import datasets  # heavy imports (torch), only when writing
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+    from lerobot.datasets.utils import write_info
+
+    datasets.disable_progress_bars()  # one "Map" bar per episode otherwise; ours counts frames
+
+    features = dataset_features(survey_.cameras, survey_.image_size)
+    dataset = LeRobotDataset.create(repo_id, survey_.fps, features, root=root, use_videos=False,
+                                    image_writer_threads=IMAGE_WRITER_THREADS)
+    dataset.meta.info["cameras"] = survey_.cameras
+    dataset.meta.info["depth_encoding"] = DEPTH_ENCODING
+    dataset.meta.info["calibration_layout"] = CALIBRATION_LAYOUT
+    provenance = []
+    frames = 0
+    try:
+        for index, planned in enumerate(plan.episodes):
+            episode = read_episode(planned.source.path)
+            for frame in episode_frames(episode, granularity):
+                dataset.add_frame(dataset_frame(episode, frame, planned.instruction))
+                frames += 1
+                if progress is not None:
+                    progress.update(1)
+            dataset.save_episode()
+            row = planned.human
+            provenance.append({
+                "episode_index": index,
+                "recording": planned.source.path.name,
+                "variation_id": planned.source.variation_id,
+                "colours": list(planned.source.colours),
+                "episode_seed": planned.source.episode_seed,
+                "instruction": planned.instruction,
+                **({"human_instruction_line": row.line, "author": row.author, "language": row.language} if row else {}),
+            })
+        dataset.finalize()
+    finally:
+        dataset.stop_image_writer()
+    shutil.rmtree(root / "images", ignore_errors=True)  # empty once the PNGs are embedded in the parquet files
+    dataset.meta.info["demo_factory"] = {
+        "task": survey_.task,
+        "split": plan.name,
+        "instruction_source": plan.instruction_source,
+        "granularity": granularity,
+        "episodes": provenance,
+    }
+    write_info(dataset.meta.info, root)
+    return SplitSummary(plan.name, repo_id, plan.instruction_source, len(plan.episodes), frames,
+                        len({e.source.variation_id for e in plan.episodes}))
+
+
+def convert(options: ConvertOptions, log: Callable[[str], None] = print) -> ConvertResult:
+    """Run a whole conversion; raises ``ConvertError`` for problems the user can fix."""
+    began = time.perf_counter()
+    check_options(options)
+    paths = find_recordings(options.inputs)
+    found = survey(paths, options)
+    human_file, human_rows = _load_human_rows(options, found.task)
+    plans, assignment = plan_splits(found.sources, options.val_ratio, human_rows)
+    skipped_splits = []
+    for name, plan in plans.items():
+        if plan.episodes:
+            continue
+        if name == "test_unseen_human" and human_rows is None:
+            why = f"no human-instruction file for {found.task} (pass --human-instructions FILE)"
+        elif name == "test_unseen_human" and any(s.split == "test" for s in found.sources):
+            why = f"no row of {human_file} names a test variation that has recordings"
+        elif name == "val" and plans["train"].episodes:
+            why = "--val-ratio 0 or a single train episode"
+        elif name in ("train", "val"):
+            why = "no recordings of train variations"
+        else:
+            why = "no recordings of test variations"
+        skipped_splits.append((name, why))
+        log(f"skipping split {name}: {why}")
+    to_write = [plan for plan in plans.values() if plan.episodes]
+    out = options.out
+    staging = out.parent / f".{out.name}.partial-{os.getpid()}"
+    out.parent.mkdir(parents=True, exist_ok=True)
+    if staging.exists():
+        shutil.rmtree(staging)
+    staging.mkdir()
+    summaries = []
+    try:
+        with tqdm(total=sum(p.frames for p in to_write), desc="writing", unit="frame",
+                  disable=not options.progress) as bar:
+            for plan in to_write:
+                bar.set_postfix_str(plan.name)
+                summaries.append(write_split(plan, staging / plan.name, split_repo_id(options.repo_id, plan.name),
+                                             found, options.granularity, bar))
+        result = ConvertResult(
+            out=out, repo_id=options.repo_id, task=found.task, granularity=options.granularity, fps=found.fps,
+            cameras=found.cameras, image_size=found.image_size, splits=summaries, skipped_splits=skipped_splits,
+            invalid=found.invalid, sources=found.sources, human_file=human_file, human_assignment=assignment,
+            seconds=0.0, frames_written=sum(s.frames for s in summaries), command=convert_command(options, found.task),
+            other_tasks=found.other_tasks,
+            generation_summaries=[g for g in find_generation_summaries(options.inputs) if g.get("task") == found.task],
+        )
+        from demo_factory.convert.card import write_card  # after the datasets: it reads their first frames
+
+        write_card(staging, result, plans)
+        if out.exists():
+            retired = out.parent / f".{out.name}.old-{os.getpid()}"
+            out.rename(retired)
+            staging.rename(out)
+            shutil.rmtree(retired)
+        else:
+            staging.rename(out)
+    except BaseException:
+        shutil.rmtree(staging, ignore_errors=True)
+        raise
+    result.seconds = time.perf_counter() - began
+    return result

@@ -1,0 +1,145 @@
+"""The LeRobot feature layout of a converted dataset, and recording frame → dataset frame.
+
+Per camera ``<cam>`` (the recording's cameras, e.g. left_shoulder / right_shoulder / wrist):
+- ``observation.images.<cam>``       image (H, W, 3) uint8 RGB, stored as lossless PNG.
+- ``observation.depth.<cam>``        image (H, W, 3) uint8: z-depth in whole millimetres packed as
+  R = mm // 256, G = mm % 256, B = 0 (0 = no hit). PNG keeps it exact; a 1-channel or float
+  feature would be rejected or read ~30× slower by LeRobot (see FACTS.md).
+- ``observation.calibration.<cam>``  float32 (20,): fx, fy, cx, cy, then the 4×4 world-from-camera
+  transform (OpenCV axes) row-major. Per frame because the wrist camera moves.
+Robot and labels:
+- ``observation.state``  float32 (15,): gripper x, y, z, qx, qy, qz, qw, gripper_open, joint_0..joint_6.
+- ``action``             float32 (8,): the next keyframe's target x, y, z, qx, qy, qz, qw and open
+  command (the last keyframe repeats its own target).
+- ``variation_id``, ``keyframe_index``  int64 (1,): for breaking results down.
+- the instruction is the frame's ``task`` string.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from demo_factory.record.episode import CameraObservation, Episode, Frame
+
+KEYFRAME_FPS = 10  # nominal rate of keyframe datasets: LeRobot needs one; keyframes are not evenly timed
+POSE_NAMES = ["x", "y", "z", "qx", "qy", "qz", "qw"]
+STATE_NAMES = [*POSE_NAMES, "gripper_open", *(f"joint_{i}" for i in range(7))]
+ACTION_NAMES = [*POSE_NAMES, "open"]
+CALIBRATION_NAMES = ["fx", "fy", "cx", "cy", *(f"T_world_cam_{r}{c}" for r in range(4) for c in range(4))]
+DEPTH_ENCODING = {
+    "unit": "mm",
+    "channels": "R = mm // 256, G = mm % 256, B = 0",
+    "decode": "depth_m = (256 * R + G) / 1000; 0 = no hit",
+}
+CALIBRATION_LAYOUT = {
+    "names": CALIBRATION_NAMES,
+    "intrinsics": "fx, fy, cx, cy in pixels (pixel centres at integer coordinates)",
+    "extrinsics": "4x4 world-from-camera, OpenCV axes (x right, y down, z forward), row-major",
+    "unproject": "p_world = T @ [(u - cx) * z / fx, (v - cy) * z / fy, z, 1] for pixel (u=column, v=row)",
+}
+GRANULARITIES = ("keyframe", "dense")
+
+
+def image_key(camera: str) -> str:
+    return f"observation.images.{camera}"
+
+
+def depth_key(camera: str) -> str:
+    return f"observation.depth.{camera}"
+
+
+def calibration_key(camera: str) -> str:
+    return f"observation.calibration.{camera}"
+
+
+def dataset_features(cameras: list[str], image_size: tuple[int, int]) -> dict[str, dict]:
+    """The ``features`` argument of ``LeRobotDataset.create`` for these cameras and (H, W)."""
+    height, width = image_size
+    image = {"dtype": "image", "shape": (height, width, 3), "names": ["height", "width", "channels"]}
+    features: dict[str, dict] = {}
+    for camera in cameras:
+        features[image_key(camera)] = dict(image)
+        features[depth_key(camera)] = dict(image)
+        features[calibration_key(camera)] = {"dtype": "float32", "shape": (20,), "names": CALIBRATION_NAMES}
+    features["observation.state"] = {"dtype": "float32", "shape": (15,), "names": STATE_NAMES}
+    features["action"] = {"dtype": "float32", "shape": (8,), "names": ACTION_NAMES}
+    features["variation_id"] = {"dtype": "int64", "shape": (1,), "names": None}
+    features["keyframe_index"] = {"dtype": "int64", "shape": (1,), "names": None}
+    return features
+
+
+def pack_depth(depth_m: np.ndarray) -> np.ndarray:
+    """(H, W) metres → (H, W, 3) uint8 whole millimetres (R = mm // 256, G = mm % 256, B = 0)."""
+    mm = np.clip(np.rint(depth_m * 1000.0), 0, 65535).astype(np.uint16)
+    packed = np.zeros((*mm.shape, 3), np.uint8)
+    packed[..., 0] = mm >> 8
+    packed[..., 1] = mm & 0xFF
+    return packed
+
+
+def unpack_depth(packed: np.ndarray) -> np.ndarray:
+    """(H, W, 3) uint8 packed depth (or (3, H, W) floats in [0, 1] as LeRobot loads it) → (H, W) metres."""
+    packed = np.asarray(packed)
+    if packed.dtype != np.uint8:  # LeRobot's loader gives channel-first floats in [0, 1]
+        packed = np.rint(np.moveaxis(packed, 0, -1) * 255.0).astype(np.uint8)
+    mm = packed[..., 0].astype(np.float32) * 256.0 + packed[..., 1].astype(np.float32)
+    return mm / 1000.0
+
+
+def calibration_vector(camera: CameraObservation) -> np.ndarray:
+    """(20,) float32: fx, fy, cx, cy, world-from-camera 4×4 row-major."""
+    return np.concatenate([np.asarray(camera.intrinsics, np.float64), np.asarray(camera.extrinsics).ravel()]).astype(np.float32)
+
+
+def world_points(depth_m: np.ndarray, calibration: np.ndarray) -> np.ndarray:
+    """(H, W) metric depth + (20,) calibration → (H, W, 3) world points (NaN where depth is 0)."""
+    calibration = np.asarray(calibration, np.float64)
+    fx, fy, cx, cy = calibration[:4]
+    transform = calibration[4:].reshape(4, 4)
+    height, width = depth_m.shape
+    v, u = np.mgrid[0:height, 0:width].astype(np.float64)
+    z = np.where(depth_m > 0, depth_m, np.nan).astype(np.float64)
+    camera_points = np.stack([(u - cx) * z / fx, (v - cy) * z / fy, z], axis=-1)
+    return camera_points @ transform[:3, :3].T + transform[:3, 3]
+
+
+def episode_frames(episode: Episode, granularity: str) -> list[Frame]:
+    """The recording frames that become dataset frames: keyframe observations, or dense frames."""
+    if granularity == "keyframe":
+        return episode.keyframe_frames()
+    if granularity == "dense":
+        return episode.dense_frames()
+    raise ValueError(f"unknown granularity {granularity!r}; accepted: {', '.join(GRANULARITIES)}")
+
+
+def action_for(episode: Episode, keyframe_index: int) -> np.ndarray:
+    """(8,) float32 action of an observation taken at or after keyframe ``keyframe_index``:
+    keyframe k+1's target pose and gripper command (the last keyframe repeats its own)."""
+    target = episode.keyframes[min(keyframe_index + 1, len(episode.keyframes) - 1)]
+    return np.append(np.asarray(target.target_pose, np.float64), target.gripper_open).astype(np.float32)
+
+
+def observation_item(frame: Frame, cameras: list[str]) -> dict[str, np.ndarray]:
+    """The ``observation.*`` features of one frame (images as (H, W, 3) uint8): what a dataset stores
+    and what a policy is shown during evaluation."""
+    robot = frame.robot
+    item: dict[str, np.ndarray] = {}
+    for camera in cameras:
+        observation = frame.cameras[camera]
+        item[image_key(camera)] = observation.rgb
+        item[depth_key(camera)] = pack_depth(observation.depth)
+        item[calibration_key(camera)] = calibration_vector(observation)
+    item["observation.state"] = np.concatenate(
+        [robot.gripper_pose, [robot.gripper_open], robot.joint_positions]
+    ).astype(np.float32)
+    return item
+
+
+def dataset_frame(episode: Episode, frame: Frame, instruction: str) -> dict:
+    """One ``add_frame`` dict for LeRobot from a recording frame."""
+    item: dict = observation_item(frame, episode.info.cameras)
+    item["action"] = action_for(episode, frame.keyframe_index)
+    item["variation_id"] = np.array([episode.info.variation_id], np.int64)
+    item["keyframe_index"] = np.array([frame.keyframe_index], np.int64)
+    item["task"] = instruction
+    return item

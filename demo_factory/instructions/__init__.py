@@ -1,0 +1,21 @@
+"""Instruction tools: colour-word corruption and human-written instruction files."""
+
+from demo_factory.instructions.corruption import COLOUR_SYNONYMS, colour_words, corrupt_instruction
+from demo_factory.instructions.human import (
+    HumanInstruction,
+    HumanInstructionError,
+    assign_human_instructions,
+    load_human_instructions,
+    shipped_human_instructions,
+)
+
+__all__ = [
+    "COLOUR_SYNONYMS",
+    "HumanInstruction",
+    "HumanInstructionError",
+    "assign_human_instructions",
+    "colour_words",
+    "corrupt_instruction",
+    "load_human_instructions",
+    "shipped_human_instructions",
+]

@@ -1,0 +1,281 @@
+"""MCAP recordings → LeRobot datasets: splits, features, instructions, robustness, training."""
+
+import os
+
+os.environ.setdefault("HF_HUB_OFFLINE", "1")  # every load below must work without the Hub
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from demo_factory.convert import SPLITS, unpack_depth, world_points
+from demo_factory.convert.cli import main
+from demo_factory.convert.usage import act_train_args
+from demo_factory.instructions import colour_words, corrupt_instruction
+from demo_factory.record import (
+    FORMAT_VERSION,
+    CameraObservation,
+    EpisodeInfo,
+    EpisodeWriter,
+    Frame,
+    Keyframe,
+    PlannerAttempt,
+    RobotState,
+    read_episode,
+)
+from demo_factory.tasks import get_task
+
+CAMERAS = ["left_shoulder", "right_shoulder", "wrist"]
+SIZE = (32, 32)
+
+
+def _camera(rng) -> CameraObservation:
+    extrinsics = np.eye(4)
+    extrinsics[:3, :3] = Rotation.from_rotvec(rng.normal(size=3)).as_matrix()
+    extrinsics[:3, 3] = rng.uniform(-1, 1, 3)
+    depth = np.round(rng.uniform(0.2, 2.0, SIZE), 3).astype(np.float32)
+    depth[0, :4] = 0.0  # no hit
+    return CameraObservation(
+        rgb=rng.integers(0, 256, (*SIZE, 3), dtype=np.uint8), depth=depth,
+        segmentation=rng.integers(-1, 5, SIZE).astype(np.int32),
+        intrinsics=np.array([30.0, 31.0, 15.5, 16.0]), extrinsics=extrinsics,
+    )
+
+
+def _robot(rng) -> RobotState:
+    pose = np.concatenate([rng.uniform(-1, 1, 3), Rotation.random(random_state=int(rng.integers(1 << 30))).as_quat()])
+    return RobotState(rng.uniform(-2, 2, 7), pose, float(rng.integers(0, 2)), 0.04)
+
+
+def write_recording(folder: Path, task: str, split: str, variation, seed: int, keyframes: int,
+                    dense_fps: float = 0.0, cameras=CAMERAS) -> Path:
+    """A synthetic episode recording: random images, ``keyframes`` keyframes, optional dense frames."""
+    rng = np.random.default_rng(seed)
+    info = EpisodeInfo(FORMAT_VERSION, task, split, variation.id, list(variation.colours), seed,
+                       get_task(task).instruction(variation, seed), list(cameras), SIZE, dense_fps)
+    path = folder / f"{task}_{split}_var{variation.id:04d}_seed{seed:010d}.mcap"
+    writer = EpisodeWriter(path, info)
+    second = 1_000_000_000
+    for k in range(keyframes):
+        t = k * second
+        writer.write_frame(Frame(t, True, False, k, _robot(rng), {c: _camera(rng) for c in cameras}))
+        writer.write_keyframe(Keyframe(k, t, _robot(rng).gripper_pose, float(k % 2), _robot(rng).gripper_pose,
+                                       "start" if k == 0 else "planned"))
+        if dense_fps and k < keyframes - 1:
+            writer.write_frame(Frame(t + second // 2, False, True, k, _robot(rng), {c: _camera(rng) for c in cameras}))
+    attempts = [PlannerAttempt(k, a, seed + a, "exact" if a == n - 1 else "timeout", 1.0)
+                for k, n in ((1, 1), (2, 3)) for a in range(n)]
+    return writer.close(keyframes * second, True, attempts, {"demo_factory": "test"})
+
+
+def _variations(task, split, n):
+    return get_task(task).split_variations(split)[:n]
+
+
+@pytest.fixture(scope="module")
+def recordings(tmp_path_factory):
+    """push_buttons: 4 train-variation episodes, 3 test-variation ones (two of one variation)."""
+    folder = tmp_path_factory.mktemp("raw") / "push_buttons"
+    folder.mkdir()
+    train = _variations("push_buttons", "train", 4)
+    test = _variations("push_buttons", "test", 2)
+    for i, v in enumerate(train):
+        write_recording(folder, "push_buttons", "train", v, 100 + i, keyframes=3 + i % 3)
+    for i, v in enumerate([test[0], test[0], test[1]]):
+        write_recording(folder, "push_buttons", "test", v, 200 + i, keyframes=4)
+    return folder
+
+
+@pytest.fixture(scope="module")
+def human_file(tmp_path_factory):
+    """Three rows for the first test variation (it has 2 episodes), one for the second (1 episode)."""
+    a, b = _variations("push_buttons", "test", 2)
+    rows = [{"task": "push_buttons", "variation_id": a.id, "instruction": f"hit them, take {i}", "author": "t"}
+            for i in range(3)] + [{"task": "push_buttons", "colours": list(b.colours), "instruction": "tap the grey-ish ones"}]
+    path = tmp_path_factory.mktemp("human") / "human.jsonl"
+    path.write_text("".join(json.dumps(r) + "\n" for r in rows))
+    return path
+
+
+@pytest.fixture(scope="module")
+def converted(recordings, human_file, tmp_path_factory):
+    out = tmp_path_factory.mktemp("lerobot") / "push_buttons"
+    code = main(["convert", "--in", str(recordings), "--out", str(out), "--repo-id", "me/push_buttons",
+                 "--val-ratio", "0.25", "--human-instructions", str(human_file), "--no-progress"])
+    assert code == 0
+    return out
+
+
+def _load(out: Path, split: str):
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+    return LeRobotDataset(f"me/push_buttons_{split}", root=out / split)
+
+
+def _episodes(dataset):
+    """Dataset frames grouped by episode, with the recording each came from."""
+    provenance = dataset.meta.info["demo_factory"]["episodes"]
+    items = [dataset[i] for i in range(len(dataset))]
+    return [([it for it in items if it["episode_index"].item() == p["episode_index"]], p) for p in provenance]
+
+
+def test_layout_every_split_loads_offline(converted):
+    assert sorted(p.name for p in converted.iterdir()) == sorted([*SPLITS, "README.md", "contact_sheet.png"])
+    for split in SPLITS:
+        dataset = _load(converted, split)
+        assert dataset.num_episodes > 0 and dataset.fps == 10
+        assert dataset.meta.info["cameras"] == CAMERAS
+        assert dataset.meta.info["depth_encoding"]["unit"] == "mm"
+        assert dataset.meta.info["demo_factory"]["split"] == split
+        assert not (converted / split / "images").exists()
+    assert not list(converted.parent.glob(".push_buttons.*"))  # no staging folder left
+
+
+def test_frames_and_actions_follow_the_recorded_keyframes(converted, recordings):
+    for split in ("train", "val", "test_unseen_synthetic"):
+        for frames, source in _episodes(_load(converted, split)):
+            episode = read_episode(recordings / source["recording"])
+            assert len(frames) == len(episode.keyframes)
+            for k, item in enumerate(frames):
+                target = episode.keyframes[min(k + 1, len(episode.keyframes) - 1)]
+                expected = np.append(target.target_pose, target.gripper_open)
+                assert np.allclose(item["action"].numpy(), expected, atol=1e-6)
+                robot = episode.keyframe_frames()[k].robot
+                state = np.concatenate([robot.gripper_pose, [robot.gripper_open], robot.joint_positions])
+                assert np.allclose(item["observation.state"].numpy(), state, atol=1e-6)
+                assert item["keyframe_index"].item() == k and item["variation_id"].item() == episode.info.variation_id
+                rgb = np.rint(item["observation.images.wrist"].numpy() * 255).astype(np.uint8).transpose(1, 2, 0)
+                assert np.array_equal(rgb, episode.keyframe_frames()[k].cameras["wrist"].rgb)
+
+
+def test_world_points_from_dataset_equal_those_from_the_recording(converted, recordings):
+    frames, source = _episodes(_load(converted, "train"))[0]
+    episode = read_episode(recordings / source["recording"])
+    for k, item in enumerate(frames):
+        for camera in CAMERAS:
+            recorded = episode.keyframe_frames()[k].cameras[camera]
+            fx, fy, cx, cy = recorded.intrinsics
+            v, u = np.mgrid[0:SIZE[0], 0:SIZE[1]]
+            z = np.where(recorded.depth > 0, recorded.depth, np.nan)
+            homogeneous = np.stack([(u - cx) * z / fx, (v - cy) * z / fy, z, np.ones_like(z)], axis=-1)
+            expected = (homogeneous @ recorded.extrinsics.T)[..., :3]
+            depth = unpack_depth(item[f"observation.depth.{camera}"].numpy())
+            rebuilt = world_points(depth, item[f"observation.calibration.{camera}"].numpy())
+            assert np.array_equal(np.isnan(rebuilt), np.isnan(expected))
+            assert np.nanmax(np.abs(rebuilt - expected)) < 1e-5
+
+
+def test_splits_keep_seen_and_unseen_variations_apart(converted):
+    test_ids = {v.id for v in get_task("push_buttons").split_variations("test")}
+    seen = {split: _load(converted, split).meta.info["demo_factory"]["episodes"] for split in SPLITS}
+    for split in ("train", "val"):
+        assert seen[split] and all(e["variation_id"] not in test_ids for e in seen[split])
+    for split in ("test_unseen_synthetic", "test_unseen_corrupted", "test_unseen_human"):
+        assert all(e["variation_id"] in test_ids for e in seen[split])
+    assert len(seen["val"]) == 1 and len(seen["train"]) == 3
+    assert not {e["recording"] for e in seen["val"]} & {e["recording"] for e in seen["train"]}
+
+
+def test_corrupted_split_has_no_seen_colour_word(converted):
+    synthetic = _load(converted, "test_unseen_synthetic")
+    corrupted = _load(converted, "test_unseen_corrupted")
+    tasks = list(corrupted.meta.tasks.index)
+    assert tasks and all(colour_words(t) == [] for t in tasks)
+    assert sorted(tasks) == sorted({corrupt_instruction(t) for t in synthetic.meta.tasks.index})
+    assert all(corrupted[i]["task"] in tasks for i in range(len(corrupted)))
+
+
+def test_human_split_uses_every_sentence_of_the_file(converted, human_file):
+    human = _load(converted, "test_unseen_human")
+    sentences = [json.loads(line)["instruction"] for line in human_file.read_text().splitlines()]
+    used = [e["instruction"] for e in human.meta.info["demo_factory"]["episodes"]]
+    # variation a: 2 episodes, 3 rows → 3 episodes; variation b: 1 episode, 1 row
+    assert sorted(used) == sorted(sentences)
+    assert {human[i]["task"] for i in range(len(human))} == set(sentences)
+
+
+def test_card_lists_splits_features_and_how_to_train(converted):
+    card = (converted / "README.md").read_text()
+    assert card.startswith("---\nlicense: apache-2.0\ntask_categories:\n- robotics\n")
+    assert "- LeRobot" in card and "path: test_unseen_human/data/*/*.parquet" in card
+    assert "| `test_unseen_human` | `me/push_buttons_test_unseen_human` | 4 |" in card
+    assert "`observation.calibration.wrist`" in card and "written by the project's authors" in card
+    assert "lerobot-train --policy.type=act" in card and "--policy.pretrained_backbone_weights=null" in card
+    assert "guhur2022hiveformer" in card and "james2020rlbench" in card and "cadene2024lerobot" in card
+    assert "planned transition: mean 2.00, max 3" in card
+
+
+def test_truncated_recording_stops_the_conversion_naming_the_file(recordings, tmp_path, capsys):
+    folder = tmp_path / "raw"
+    folder.mkdir()
+    for path in sorted(recordings.glob("*.mcap"))[:2]:
+        (folder / path.name).write_bytes(path.read_bytes())
+    damaged = folder / "zz_truncated.mcap"
+    data = next(recordings.glob("*.mcap")).read_bytes()
+    damaged.write_bytes(data[: len(data) // 2])
+    out = tmp_path / "out"
+    assert main(["convert", "--in", str(folder), "--out", str(out), "--no-progress"]) == 2
+    error = capsys.readouterr().err.strip()
+    assert len(error.splitlines()) == 1 and "zz_truncated.mcap: corrupt or truncated" in error and "--skip-invalid" in error
+    assert not out.exists() and not list(tmp_path.glob(".out*"))
+    assert main(["convert", "--in", str(folder), "--out", str(out), "--no-progress", "--skip-invalid"]) == 0
+    assert "zz_truncated.mcap" in capsys.readouterr().out
+    assert "zz_truncated.mcap" in (out / "README.md").read_text()
+
+
+def test_existing_output_and_bad_options_are_refused(converted, recordings, tmp_path, capsys):
+    before = sorted(p.name for p in converted.iterdir())
+    assert main(["convert", "--in", str(recordings), "--out", str(converted), "--no-progress"]) == 2
+    assert "already exists; pass --overwrite" in capsys.readouterr().err
+    assert sorted(p.name for p in converted.iterdir()) == before
+    for args, message in [
+        (["--val-ratio", "1.5"], "--val-ratio 1.5 is out of range"),
+        (["--repo-id", "no-slash"], "--repo-id 'no-slash' is not a Hub repo id"),
+        (["--task", "juggle"], "unknown task 'juggle'; accepted: push_buttons, tower"),
+        (["--granularity", "dense"], "no dense frames"),
+    ]:
+        code = main(["convert", "--in", str(recordings), "--out", str(tmp_path / "x"), "--no-progress", *args])
+        error = capsys.readouterr().err
+        assert code == 2 and message in error and len(error.strip().splitlines()) == 1, error
+        assert not (tmp_path / "x").exists()
+
+
+def test_overwrite_replaces_and_dense_granularity_uses_dense_frames(tmp_path):
+    raw = tmp_path / "raw"
+    raw.mkdir()
+    (train,), (test,) = _variations("tower", "train", 1), _variations("tower", "test", 1)
+    write_recording(raw, "tower", "train", train, 1, keyframes=3, dense_fps=2.0, cameras=["front", "wrist"])
+    write_recording(raw, "tower", "test", test, 2, keyframes=4, dense_fps=2.0, cameras=["front", "wrist"])
+    out = tmp_path / "tower"
+    out.mkdir()
+    (out / "stale.txt").write_text("old")
+    args = ["convert", "--in", str(raw), "--out", str(out), "--repo-id", "me/tower", "--granularity", "dense",
+            "--overwrite", "--no-progress"]
+    assert main(args) == 0
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+    assert not (out / "stale.txt").exists() and not (out / "val").exists()  # one train episode: no val
+    train_set = LeRobotDataset("me/tower_train", root=out / "train")
+    assert train_set.fps == 2 and len(train_set) == 2  # the dense frames, not the 3 keyframes
+    assert [train_set[i]["keyframe_index"].item() for i in range(2)] == [0, 1]
+    assert sorted(k for k in train_set.features if k.startswith("observation.images")) == [
+        "observation.images.front", "observation.images.wrist"]
+    human = LeRobotDataset("me/tower_test_unseen_human", root=out / "test_unseen_human")  # the shipped file
+    assert human.num_episodes == 3  # the first test variation has 3 shipped rows
+
+
+@pytest.mark.slow
+def test_act_trains_a_few_steps_on_the_train_split_offline(converted, tmp_path):
+    args = act_train_args("me/push_buttons_train", converted / "train", CAMERAS, SIZE, tmp_path / "act",
+                          steps=2, batch_size=2, num_workers=0, log_freq=1)
+    command = [str(Path(sys.executable).with_name("lerobot-train")), *args[1:], "--save_checkpoint=false"]
+    env = {**os.environ, "HF_HUB_OFFLINE": "1", "HF_DATASETS_OFFLINE": "1", "CUDA_VISIBLE_DEVICES": ""}
+    result = subprocess.run(command, capture_output=True, text=True, env=env, timeout=600)
+    assert result.returncode == 0, result.stderr[-3000:]
+    log = result.stdout + result.stderr
+    assert "step:2 " in log and "End of training" in log
