@@ -5,6 +5,7 @@ BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 PLUGIN := policies/lerobot_policy_hiveformer
 DEMO_RAW := data/raw/push_buttons
+DEMO_DATASET := data/lerobot/push_buttons
 
 .PHONY: install demo test bench clean
 
@@ -17,14 +18,23 @@ $(STAMP): pyproject.toml $(PLUGIN)/pyproject.toml
 	$(BIN)/python -m pip install --quiet -e ".[test]" -e $(PLUGIN)
 	touch $(STAMP)
 
-# The main job on a small default: expert episodes of both splits → MCAP → inspect one.
+# The main job on a small default: expert episodes of both splits → MCAP → LeRobot datasets.
+# Re-running it resumes generation (nothing is generated twice) and rebuilds the datasets.
 demo: install
 	$(BIN)/demo-factory tasks
-	$(BIN)/demo-factory generate --task push_buttons --split train --episodes 6 --out $(DEMO_RAW)
-	$(BIN)/demo-factory generate --task push_buttons --split test --episodes 4 --out $(DEMO_RAW)
-	$(BIN)/demo-factory inspect $$(ls $(DEMO_RAW)/*.mcap | head -n 1)
+	$(BIN)/demo-factory generate --task push_buttons --split train --episodes 8 --out $(DEMO_RAW)/train
+	$(BIN)/demo-factory generate --task push_buttons --split test --episodes 4 --out $(DEMO_RAW)/test
+	$(BIN)/demo-factory inspect $$(ls $(DEMO_RAW)/train/*.mcap | head -n 1)
+	$(BIN)/demo-factory convert --in $(DEMO_RAW) --out $(DEMO_DATASET) --repo-id demo/push_buttons --overwrite
+
+# The browser test of `collect-instructions` needs Debian's chromium and its driver: installed here
+# when absent; where that is impossible the test is skipped with a message.
+SUDO := $(shell [ "$$(id -u)" = 0 ] || echo sudo -n)
 
 test: install
+	command -v chromium >/dev/null && command -v chromedriver >/dev/null || \
+	  ( $(SUDO) apt-get update -qq && $(SUDO) env DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium chromium-driver ) || \
+	  echo "chromium/chromium-driver could not be installed: the browser test will be skipped"
 	$(BIN)/python -m pytest
 
 bench: install

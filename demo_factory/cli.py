@@ -1,4 +1,4 @@
-"""The ``demo-factory`` command: tasks, generate, inspect, convert."""
+"""The ``demo-factory`` command: tasks, generate, inspect, convert, eval, collect-instructions."""
 
 from __future__ import annotations
 
@@ -11,9 +11,11 @@ from pathlib import Path
 
 import numpy as np
 
+from demo_factory.convert.cli import add_parser as add_convert_parser
+from demo_factory.evaluate.cli import add_parser as add_eval_parser
 from demo_factory.tasks import SPLITS, TASKS, get_task
 
-SUMMARY_FILE = "generation_summary.json"
+MANIFEST_FILE = "manifest.json"
 
 
 class UsageError(Exception):
@@ -39,6 +41,17 @@ def non_negative_float(text: str) -> float:
     if value < 0:
         raise argparse.ArgumentTypeError(f"{value} is not allowed; must be 0 or more")
     return value
+
+
+def shard(text: str) -> tuple[int, int]:
+    """``i/N`` with 0 <= i < N."""
+    try:
+        index, count = (int(v) for v in text.split("/"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a shard; use i/N, e.g. 0/4") from None
+    if not 0 <= index < count:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a shard; i/N needs 0 <= i < N")
+    return index, count
 
 
 def image_size(text: str) -> tuple[int, int]:
@@ -74,7 +87,8 @@ def check_output_folder(out: Path, own_file) -> None:
 
 
 def _is_generation_file(name: str) -> bool:
-    return name.endswith(".mcap") or name.endswith(".mcap.partial") or name == SUMMARY_FILE
+    return (name.endswith(".mcap") or name.endswith(".mcap.partial") or name == MANIFEST_FILE
+            or (name.startswith("generation_summary") and name.endswith(".json")))
 
 
 # -- commands ---------------------------------------------------------------------------------
@@ -93,37 +107,83 @@ def cmd_tasks(args) -> int:
 def cmd_generate(args) -> int:
     from tqdm import tqdm
 
-    from demo_factory.generate import job_requests, run_requests
+    from demo_factory.generate import ManifestMismatch, job_requests, record_job, remove_stale_partials, run_requests, shard_requests
 
     out = Path(args.out)
+    named = named_variations(args)
+    args.split = args.split or ("test" if named else "train")
+    for variation in named:
+        try:
+            get_task(args.task).check_split_membership(variation, args.split)
+        except ValueError as exc:
+            raise UsageError(str(exc)) from None
     check_output_folder(out, _is_generation_file)
-    requests = job_requests(args.task, args.split, args.episodes, args.seed, image_size=args.image_size,
-                            dense_fps=args.dense_fps)
+    episodes = args.episodes_per_variation * len(named) if args.episodes_per_variation else args.episodes
+    requests = job_requests(args.task, args.split, episodes, args.seed, variations=named or None,
+                            image_size=args.image_size, dense_fps=args.dense_fps)
+    parameters = {"task": args.task, "split": args.split, "episodes": episodes, "seed": args.seed,
+                  "image_size": list(args.image_size), "dense_fps": args.dense_fps,
+                  "variations": [v.id for v in named] or None}
+    requests = shard_requests(requests, args.shard)
     try:
         out.mkdir(parents=True, exist_ok=True)
+        record_job(out, parameters)
+    except ManifestMismatch as exc:
+        raise UsageError(str(exc)) from None
     except OSError as exc:
-        raise UsageError(f"--out {out}: cannot create it ({exc.strerror})") from None
+        raise UsageError(f"--out {out}: cannot write there ({exc.strerror})") from None
+    remove_stale_partials(out, requests)
     outcomes = []
     bar = tqdm(total=len(requests), desc=f"{args.task}/{args.split}", unit="episode", file=sys.stderr)
-    for outcome in run_requests(requests, out, workers=args.workers):
-        outcomes.append(outcome)
-        bar.update(1)
-        bar.set_postfix(kept=sum(o.kept for o in outcomes), failed=sum(not o.kept for o in outcomes))
+    try:
+        for outcome in run_requests(requests, out, workers=args.workers):
+            outcomes.append(outcome)
+            bar.update(1)
+            bar.set_postfix(kept=sum(o.kept for o in outcomes), failed=sum(not o.kept for o in outcomes))
+    except OSError as exc:
+        bar.close()
+        kept = sum(o.kept for o in outcomes)
+        print(f"demo-factory generate: error: writing to {out} failed ({exc.strerror}); the {kept} episodes "
+              "finished so far are complete and valid; fix the cause and re-run the same command to resume",
+              file=sys.stderr)
+        return 1
     bar.close()
     summary = generation_summary(args, outcomes)
-    (out / SUMMARY_FILE).write_text(json.dumps(summary, indent=2) + "\n")
+    (out / f"generation_summary_{args.task}_{args.split}.json").write_text(json.dumps(summary, indent=2) + "\n")
     print_generation_summary(summary, out)
     return 0 if summary["kept"] > 0 else 1
 
 
+def named_variations(args) -> list:
+    """The variations named with --variation / --variations-from, in order, without repeats."""
+    task = get_task(args.task)
+    named = []
+    try:
+        for text in args.variation or []:
+            named.append(task.parse_variation(text))
+        if args.variations_from:
+            from demo_factory.instructions.human import variations_in_file
+
+            named += variations_in_file(args.variations_from, task)
+    except ValueError as exc:
+        raise UsageError(str(exc)) from None
+    if args.episodes_per_variation and not named:
+        raise UsageError("--episodes-per-variation needs --variation or --variations-from")
+    return list(dict.fromkeys(named))
+
+
 def generation_summary(args, outcomes) -> dict:
-    """The figures a user wants after a generation run (also written to ``generation_summary.json``)."""
+    """The figures a user wants after a generation run (also written to ``generation_summary_<task>_<split>.json``)."""
     fresh = [o for o in outcomes if not o.resumed]
     planning = [s for o in fresh for s in o.planning_seconds]
     attempts = Counter(a for o in fresh for a in o.attempts_per_transition)
     return {
         "command": " ".join(["demo-factory", "generate", "--task", args.task, "--split", args.split, "--episodes",
-                             str(args.episodes), "--seed", str(args.seed), "--out", str(args.out)]),
+                             str(args.episodes), "--seed", str(args.seed), "--out", str(args.out)]
+                            + [f"--variation={v}" for v in args.variation or []]
+                            + (["--variations-from", args.variations_from] if args.variations_from else [])
+                            + (["--episodes-per-variation", str(args.episodes_per_variation)]
+                               if args.episodes_per_variation else [])),
         "task": args.task,
         "split": args.split,
         "requested": len(outcomes),
@@ -191,14 +251,25 @@ def build_parser() -> argparse.ArgumentParser:
                     "same command skips episodes already recorded.",
     )
     gen.add_argument("--task", required=True, choices=sorted(TASKS), help="task name (see `demo-factory tasks`)")
-    gen.add_argument("--split", default="train", choices=SPLITS, help="variation split (default: train)")
-    gen.add_argument("--episodes", type=positive_int, default=10, help="episodes to attempt (default: 10)")
+    gen.add_argument("--split", choices=SPLITS,
+                     help="variation split (default: train; test when variations are named)")
+    gen.add_argument("--episodes", type=positive_int, default=10,
+                     help="episodes to attempt, cycling over the variations (default: 10)")
+    gen.add_argument("--variation", action="append", metavar="SEQUENCE_OR_ID",
+                     help="generate this variation only: a colour sequence such as maroon,navy,teal or a variation "
+                          "id (repeatable)")
+    gen.add_argument("--variations-from", metavar="JSONL",
+                     help="generate every distinct variation named in a human-instruction file (converter format)")
+    gen.add_argument("--episodes-per-variation", type=positive_int,
+                     help="with named variations: this many episodes of each (instead of --episodes in all)")
     gen.add_argument("--seed", type=int, default=0, help="base seed; episode seeds derive from it (default: 0)")
     gen.add_argument("--out", required=True, help="output folder for the .mcap files")
     gen.add_argument("--image-size", type=image_size, default=(128, 128), help="camera size, N or HxW (default: 128)")
     gen.add_argument("--dense-fps", type=non_negative_float, default=0.0,
                      help="also record dense frames at this rate between keyframes (default: 0 = keyframes only)")
-    gen.add_argument("--workers", type=positive_int, default=1, help="parallel processes (default: 1)")
+    gen.add_argument("--workers", type=positive_int, default=os.cpu_count() or 1,
+                     help="parallel processes; files are identical for any number (default: the number of cores)")
+    gen.add_argument("--shard", type=shard, help="run only shard i/N of the job (the shards' union is the job)")
     gen.set_defaults(run=cmd_generate)
 
     ins = commands.add_parser("inspect", help="summarise one episode recording",
@@ -206,12 +277,11 @@ def build_parser() -> argparse.ArgumentParser:
     ins.add_argument("recording", help="path to an episode .mcap file")
     ins.set_defaults(run=cmd_inspect)
 
-    try:
-        from demo_factory.convert.cli import add_parser as add_convert
-    except ImportError:
-        add_convert = None
-    if add_convert is not None:
-        add_convert(commands)
+    add_convert_parser(commands)
+    add_eval_parser(commands)
+    from demo_factory.collect.cli import add_parser as add_collect_parser  # it imports this module's UsageError
+
+    add_collect_parser(commands)
     return parser
 
 

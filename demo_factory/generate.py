@@ -6,7 +6,9 @@ the same inputs give a byte-identical recording, in any process and in any order
 
 from __future__ import annotations
 
+import json
 import multiprocessing
+import os
 import time
 import zlib
 from dataclasses import dataclass, field
@@ -64,13 +66,65 @@ def episode_seed(base_seed: int, task: str, split: str, index: int) -> int:
     return int(np.random.SeedSequence(entropy).generate_state(1)[0])
 
 
-def job_requests(task: str, split: str, episodes: int, base_seed: int, **settings) -> list[EpisodeRequest]:
-    """The requests of a job: episode i uses the split's variation i mod n and its own seed."""
-    variations = get_task(task).split_variations(split)
+def job_requests(task: str, split: str, episodes: int, base_seed: int, variations=None, **settings) -> list[EpisodeRequest]:
+    """The requests of a job: episode i uses variation i mod n and its own seed.
+
+    The variations are the split's (by default) or the ones named by the user.
+    """
+    variations = variations or get_task(task).split_variations(split)
     return [
         EpisodeRequest(task, split, variations[i % len(variations)].id, episode_seed(base_seed, task, split, i), **settings)
         for i in range(episodes)
     ]
+
+
+def shard_requests(requests: list[EpisodeRequest], shard: tuple[int, int] | None) -> list[EpisodeRequest]:
+    """Shard ``i/N`` of a job: every N-th request from the i-th; the shards' union is the job."""
+    if shard is None:
+        return requests
+    index, count = shard
+    return requests[index::count]
+
+
+MANIFEST_FILE = "manifest.json"
+
+
+class ManifestMismatch(ValueError):
+    """Resuming a job into a folder whose manifest recorded other parameters."""
+
+
+def record_job(folder: Path, parameters: dict) -> None:
+    """Record a job's parameters in the folder's manifest, or refuse if the same job had others.
+
+    A folder may hold several jobs (e.g. a task's train and test splits); a job is identified by
+    its task and split. Shards of a job share its parameters.
+    """
+    path = folder / MANIFEST_FILE
+    manifest = json.loads(path.read_text()) if path.exists() else {"jobs": {}}
+    key = f"{parameters['task']}/{parameters['split']}"
+    previous = manifest["jobs"].get(key)
+    if previous is not None and previous != parameters:
+        differences = "; ".join(
+            f"{name}: {previous.get(name)!r} before, {parameters.get(name)!r} now"
+            for name in sorted(set(previous) | set(parameters)) if previous.get(name) != parameters.get(name)
+        )
+        raise ManifestMismatch(f"{folder} already holds the {key} job with other parameters ({differences}); "
+                               "use the same parameters to resume it, or another folder")
+    manifest["jobs"][key] = parameters
+    partial = path.with_name(f".{MANIFEST_FILE}.partial")
+    partial.write_text(json.dumps(manifest, indent=2, sort_keys=True) + "\n")
+    os.replace(partial, path)
+
+
+def remove_stale_partials(folder: Path, requests: list[EpisodeRequest]) -> int:
+    """Delete partial files an interrupted run of these requests left behind; returns how many."""
+    removed = 0
+    for request in requests:
+        partial = folder / f".{request.filename}.partial"
+        if partial.exists():
+            partial.unlink()
+            removed += 1
+    return removed
 
 
 def library_versions() -> dict[str, str]:

@@ -18,3 +18,18 @@ def recorded_episodes(tmp_path_factory):
     for o in outcomes:
         paths.setdefault(o.request.task, []).append(o.path)
     return paths
+
+
+@pytest.fixture(scope="session")
+def converted_push_buttons(tmp_path_factory):
+    """A small converted push_buttons dataset (32x32 cameras): its root, with one folder per split."""
+    from demo_factory.cli import main
+
+    base = tmp_path_factory.mktemp("push_buttons")
+    raw, out = base / "raw", base / "lerobot"
+    for split, episodes in (("train", 3), ("test", 2)):
+        assert main(["generate", "--task", "push_buttons", "--split", split, "--episodes", str(episodes),
+                     "--image-size", "32", "--workers", "1", "--out", str(raw / split)]) == 0
+    assert main(["convert", "--in", str(raw), "--out", str(out), "--repo-id", "me/push_buttons",
+                 "--val-ratio", "0.34", "--no-progress"]) == 0
+    return out

@@ -58,7 +58,7 @@ def test_generate_then_inspect_then_resume(tmp_path):
     assert "planner attempts per planned transition" in result.stdout
     recordings = sorted(out.glob("*.mcap"))
     assert len(recordings) == 2
-    summary = json.loads((out / "generation_summary.json").read_text())
+    summary = json.loads((out / "generation_summary_push_buttons_test.json").read_text())
     assert summary["kept"] == 2 and summary["failed"] == []
 
     shown = run_cli("inspect", str(recordings[0]))

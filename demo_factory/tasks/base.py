@@ -4,10 +4,11 @@ from __future__ import annotations
 
 from abc import ABC, abstractmethod
 from dataclasses import dataclass
-from functools import cached_property
+from functools import cache
 
 import numpy as np
 
+from demo_factory.tasks.palette import canonical_colour
 from demo_factory.tasks.variations import SPLITS, Variation, enumerate_sequences, split_variations
 
 
@@ -38,16 +39,16 @@ class Task(ABC):
     split_seed: int = 0
     gripper_starts_open: bool = True
 
-    # -- variations -----------------------------------------------------------------------
-    @cached_property
+    # -- variations (pure functions of the class, computed once per process) ----------------
+    @property
     def variations(self) -> list[Variation]:
         """Every variation of the task, in its fixed enumeration order (``id`` = index)."""
-        return enumerate_sequences(self.palette, self.max_sequence)
+        return _enumeration(type(self))[0]
 
-    @cached_property
+    @property
     def splits(self) -> dict[str, list[Variation]]:
         """The disjoint train and test variation sets."""
-        return split_variations(self.variations, self.n_train, self.n_test, self.split_seed)
+        return _enumeration(type(self))[1]
 
     def split_variations(self, split: str) -> list[Variation]:
         if split not in SPLITS:
@@ -56,6 +57,46 @@ class Task(ABC):
 
     def variation(self, variation_id: int) -> Variation:
         return self.variations[variation_id]
+
+    def variation_of(self, colours) -> Variation:
+        """The variation of a colour sequence (a list or "maroon,navy"; any case, grey = gray).
+
+        Raises ``ValueError`` naming an unknown or repeated colour, or a sequence that is too long.
+        """
+        words = colours.split(",") if isinstance(colours, str) else list(colours)
+        sequence = []
+        for word in words:
+            colour = canonical_colour(word)
+            if colour is None or colour not in self.palette:
+                raise ValueError(f"unknown colour {word.strip()!r} for {self.name}; accepted: {', '.join(self.palette)}")
+            if colour in sequence:
+                raise ValueError(f"colour {colour!r} is repeated in {','.join(w.strip() for w in words)!r}; "
+                                 "each colour may appear once")
+            sequence.append(colour)
+        if not 1 <= len(sequence) <= self.max_sequence:
+            raise ValueError(f"{','.join(sequence)!r} has {len(sequence)} colours; {self.name} takes 1 to {self.max_sequence}")
+        return _enumeration(type(self))[2][tuple(sequence)]
+
+    def parse_variation(self, text: str) -> Variation:
+        """A variation named by its id (``"123"``) or its colour sequence (``"maroon,navy"``)."""
+        text = text.strip()
+        if text.isdigit():
+            if int(text) >= len(self.variations):
+                raise ValueError(f"variation id {text} does not exist; {self.name} has ids 0 to {len(self.variations) - 1}")
+            return self.variation(int(text))
+        return self.variation_of(text)
+
+    def check_split_membership(self, variation: Variation, split: str) -> None:
+        """Refuse a variation that belongs to the other split (it would leak data across splits)."""
+        other = "train" if split == "test" else "test"
+        if split == "train" and variation not in self.splits["train"]:
+            raise ValueError(f"variation {variation.id} ({variation.name}) is not a train variation of {self.name}; "
+                             "the train split is fixed (see `demo-factory tasks`), name new variations for test")
+        if variation in self.splits[other]:
+            raise ValueError(
+                f"variation {variation.id} ({variation.name}) is a {other} variation of {self.name}; generating it "
+                f"for the {split} split would leak {other} data into a {split} split"
+            )
 
     # -- instructions ---------------------------------------------------------------------
     @abstractmethod
@@ -90,6 +131,14 @@ class Task(ABC):
     def scene_facts(self) -> dict:
         """Task-specific facts worth recording with the episode (object colours, positions)."""
         return {}
+
+
+@cache
+def _enumeration(cls: type[Task]):
+    """A task class's variations, their train/test split and a colour-sequence index."""
+    variations = enumerate_sequences(cls.palette, cls.max_sequence)
+    splits = split_variations(variations, cls.n_train, cls.n_test, cls.split_seed)
+    return variations, splits, {v.colours: v for v in variations}
 
 
 def spread_positions(rng: np.random.Generator, n: int, workspace, min_spacing: float) -> list[np.ndarray]:

@@ -1,0 +1,1 @@
+"""Closed-loop evaluation of keyframe policies in the generation tasks."""

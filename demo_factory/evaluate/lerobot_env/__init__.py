@@ -1,0 +1,76 @@
+"""The keyframe environment for ``lerobot-eval``: gym ids and a LeRobot ``EnvConfig``.
+
+    lerobot-eval --env.discover_packages_path=demo_factory.evaluate.lerobot_env \\
+        --env.type=demo_factory --env.task=push_buttons --policy.path=... --eval.n_episodes=10 --eval.batch_size=1
+
+Importing this package (``--env.discover_packages_path`` needs a package) registers ``gym_demo_factory/<task>`` for every task and the ``demo_factory``
+env type. Observations reach the policy the way ``lerobot-eval`` passes any gym observation:
+``pixels`` → ``observation.images.<cam>`` (RGB) and ``observation.images.<cam>_depth`` (packed
+depth), ``agent_pos`` → ``observation.state``, ``environment_state`` → the cameras' calibration
+vectors concatenated in camera order. The HiveFormer plugin maps that layout back to the
+dataset's (``observation.depth.<cam>``, ``observation.calibration.<cam>``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import gymnasium as gym
+from lerobot.configs.types import FeatureType, PolicyFeature
+from lerobot.envs.configs import EnvConfig
+
+from demo_factory.evaluate.env import DEFAULT_STEP_SLACK
+from demo_factory.sim import CAMERA_NAMES
+from demo_factory.tasks import TASKS
+
+ENV_TYPE = "demo_factory"
+
+for _task in TASKS:
+    _id = f"gym_{ENV_TYPE}/{_task}"
+    if _id not in gym.registry:
+        gym.register(id=_id, entry_point="demo_factory.evaluate.env:KeyframeEnv", kwargs={"task": _task})
+
+
+def _features(height: int, width: int) -> dict[str, PolicyFeature]:
+    features = {"action": PolicyFeature(type=FeatureType.ACTION, shape=(8,)),
+                "agent_pos": PolicyFeature(type=FeatureType.STATE, shape=(15,)),
+                "environment_state": PolicyFeature(type=FeatureType.ENV, shape=(20 * len(CAMERA_NAMES),))}
+    for camera in CAMERA_NAMES:
+        for key in (camera, f"{camera}_depth"):
+            features[f"pixels/{key}"] = PolicyFeature(type=FeatureType.VISUAL, shape=(height, width, 3))
+    return features
+
+
+def _features_map() -> dict[str, str]:
+    mapping = {"action": "action", "agent_pos": "observation.state", "environment_state": "observation.environment_state"}
+    for camera in CAMERA_NAMES:
+        mapping[f"pixels/{camera}"] = f"observation.images.{camera}"
+        # lerobot-eval delivers it as observation.images.<cam>_depth; the policy's processor maps it here.
+        mapping[f"pixels/{camera}_depth"] = f"observation.depth.{camera}"
+    return mapping
+
+
+@EnvConfig.register_subclass(ENV_TYPE)
+@dataclass
+class DemoFactoryEnv(EnvConfig):
+    """demo-factory's keyframe tasks: one step = one predicted keyframe ``[x, y, z, quat, open]``."""
+
+    task: str | None = "push_buttons"
+    fps: int = 10
+    split: str = "test"  # variations: "train" (seen) or "test" (unseen), with synthetic instructions
+    image_height: int = 128
+    image_width: int = 128
+    step_slack: int = DEFAULT_STEP_SLACK  # steps allowed beyond the expert's keyframe count
+    base_seed: int = 0  # evaluation scene seeds derive from it (never a generation seed)
+    features: dict[str, PolicyFeature] = field(default_factory=lambda: _features(128, 128))
+    features_map: dict[str, str] = field(default_factory=_features_map)
+
+    def __post_init__(self):
+        if self.task not in TASKS:
+            raise ValueError(f"unknown task {self.task!r}; accepted: {', '.join(sorted(TASKS))}")
+        self.features = _features(self.image_height, self.image_width)
+
+    @property
+    def gym_kwargs(self) -> dict:
+        return {"split": self.split, "image_size": (self.image_height, self.image_width),
+                "step_slack": self.step_slack, "base_seed": self.base_seed}

@@ -1,0 +1,143 @@
+"""Closed-loop evaluation: rollouts per split, results as JSON, a paper-style table and a chart."""
+
+from __future__ import annotations
+
+import json
+from collections import Counter, defaultdict
+from dataclasses import asdict
+from pathlib import Path
+
+import numpy as np
+
+from demo_factory.evaluate.env import EvalEpisode, KeyframeEnv, evaluation_seed
+from demo_factory.generate import library_versions
+from demo_factory.record import FORMAT_VERSION, EpisodeInfo, EpisodeWriter, Keyframe
+
+# The HiveFormer paper's success rates (%) for its multi-variation tasks, for the results table.
+PAPER_RESULTS = {
+    "push_buttons": {"train": 100.0, "test_unseen_synthetic": 86.3, "test_unseen_corrupted": 85.6,
+                     "test_unseen_human": 74.2},
+    "tower": {"train": 77.4, "test_unseen_synthetic": 56.2, "test_unseen_corrupted": 53.6,
+              "test_unseen_human": 24.1},
+}
+
+
+def split_episodes(dataset_split_root: Path, split: str, count: int, base_seed: int = 0) -> list[EvalEpisode]:
+    """Evaluation episodes for one converted split: its (variation, instruction) pairs, cycled,
+    each in a fresh scene from an evaluation seed (never a generation seed)."""
+    info_path = dataset_split_root / "meta" / "info.json"
+    if not info_path.is_file():
+        raise FileNotFoundError(f"{dataset_split_root}: not a converted split (no meta/info.json)")
+    provenance = json.loads(info_path.read_text()).get("demo_factory")
+    if not provenance:
+        raise ValueError(f"{dataset_split_root}: not a demo-factory dataset (no 'demo_factory' in meta/info.json)")
+    task = provenance["task"]
+    pairs = sorted({(e["variation_id"], e["instruction"]) for e in provenance["episodes"]})
+    return [
+        EvalEpisode(task, split, pairs[i % len(pairs)][0], pairs[i % len(pairs)][1],
+                    evaluation_seed(base_seed, task, split, i))
+        for i in range(count)
+    ]
+
+
+def run_episode(env: KeyframeEnv, policy, episode: EvalEpisode, record_path: Path | None = None) -> dict:
+    """One rollout; returns its record (instruction, predicted poses, outcome).
+
+    With ``record_path`` the rollout is also recorded to MCAP with the generator's recorder: one
+    frame per step, and the predicted keyframes as keyframe markers.
+    """
+    env.reset(options={"episode": episode})
+    policy.reset(env)
+    writer = _rollout_writer(env, episode, record_path) if record_path is not None else None
+    predicted, info = [], {"is_success": False, "failure_reason": ""}
+    while True:
+        action = np.asarray(policy.act(env), dtype=np.float64)
+        predicted.append([round(float(v), 6) for v in action])
+        _, _, terminated, truncated, info = env.step(action)
+        if writer is not None:
+            writer.write_frame(env.frame)
+            writer.write_keyframe(Keyframe(env.steps, env.frame.time_ns, action[:7], float(action[7] >= 0.5),
+                                           env.frame.robot.gripper_pose, "predicted"))
+        if terminated or truncated:
+            break
+    if writer is not None:
+        writer.close(env.frame.time_ns, bool(info["is_success"]), [], library_versions())
+    return {
+        **asdict(episode),
+        "success": bool(info["is_success"]),
+        "failure_reason": info["failure_reason"] or None,
+        "steps": env.steps,
+        "step_limit": env.step_limit,
+        "predicted_keyframes": predicted,
+    }
+
+
+def _rollout_writer(env: KeyframeEnv, episode: EvalEpisode, path: Path) -> EpisodeWriter:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    variation = env.sim_task.variation(episode.variation_id)
+    info = EpisodeInfo(
+        format_version=FORMAT_VERSION, task=episode.task, split=episode.split, variation_id=episode.variation_id,
+        variation=list(variation.colours), episode_seed=episode.seed, instruction=episode.instruction,
+        cameras=list(env.frame.cameras), image_size=env.image_size, dense_fps=0.0,
+        extra={"evaluation": True, **env.sim_task.scene_facts()},
+    )
+    writer = EpisodeWriter(path, info)
+    writer.write_frame(env.frame)
+    writer.write_keyframe(Keyframe(0, 0, env.frame.robot.gripper_pose, env.frame.robot.gripper_open,
+                                   env.frame.robot.gripper_pose, "start"))
+    return writer
+
+
+def summarise(records: list[dict]) -> dict:
+    """Success rate, episodes, mean steps and failure reasons, overall and per variation."""
+    def block(rows):
+        return {
+            "success_rate": float(np.mean([r["success"] for r in rows])) if rows else 0.0,
+            "episodes": len(rows),
+            "mean_steps": float(np.mean([r["steps"] for r in rows])) if rows else 0.0,
+            "failure_reasons": dict(Counter(r["failure_reason"] for r in rows if not r["success"])),
+        }
+
+    by_variation = defaultdict(list)
+    for r in records:
+        by_variation[r["variation_id"]].append(r)
+    return {**block(records), "per_variation": {str(v): block(rows) for v, rows in sorted(by_variation.items())}}
+
+
+def write_results(out: Path, policy_name: str, task: str, results: dict[str, dict]) -> None:
+    """``results.json``, ``results.md`` (paper layout: rows = policy, columns = split) and a PNG chart."""
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "results.json").write_text(json.dumps({"policy": policy_name, "task": task, "splits": results}, indent=2) + "\n")
+    splits = list(results)
+    header = "| policy | " + " | ".join(splits) + " |\n|---|" + "---|" * len(splits) + "\n"
+    row = f"| {policy_name} | " + " | ".join(f"{100 * results[s]['success_rate']:.1f}" for s in splits) + " |\n"
+    paper = dict(PAPER_RESULTS.get(task, {}))
+    if "test_unseen_synthetic" in paper:  # without a dataset, "test" = unseen variations, synthetic text
+        paper["test"] = paper["test_unseen_synthetic"]
+    if any(s in paper for s in splits):
+        row += "| HiveFormer (paper) | " + " | ".join(f"{paper[s]:.1f}" if s in paper else "–" for s in splits) + " |\n"
+    episodes = ", ".join(f"{s}: {results[s]['episodes']}" for s in splits)
+    (out / "results.md").write_text(
+        f"# Closed-loop success rate (%) — {task}\n\n{header}{row}\nEpisodes per split: {episodes}.\n"
+        "Paper figures: HiveFormer (CoRL 2022), Table 3 (seen = train variations).\n"
+    )
+    _bar_chart(out / "results.png", policy_name, task, results)
+
+
+def _bar_chart(path: Path, policy_name: str, task: str, results: dict[str, dict]) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    splits = list(results)
+    figure, axis = plt.subplots(figsize=(1.6 * len(splits) + 2, 3.2), dpi=100)
+    bars = axis.bar(splits, [100 * results[s]["success_rate"] for s in splits], color="#4C72B0")
+    axis.bar_label(bars, fmt="%.0f%%")
+    axis.set_ylim(0, 105)
+    axis.set_ylabel("success rate (%)")
+    axis.set_title(f"{task}: {policy_name}")
+    axis.tick_params(axis="x", labelrotation=15)
+    figure.tight_layout()
+    figure.savefig(path, metadata={"Software": None})
+    plt.close(figure)
