@@ -7,7 +7,7 @@ PLUGIN := policies/lerobot_policy_hiveformer
 DEMO_RAW := data/raw/push_buttons
 DEMO_DATASET := data/lerobot/push_buttons
 
-.PHONY: install demo test bench clean
+.PHONY: install demo test bench cards clean
 
 install: $(STAMP)
 
@@ -15,7 +15,7 @@ install: $(STAMP)
 $(STAMP): pyproject.toml $(PLUGIN)/pyproject.toml
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --upgrade pip
-	$(BIN)/python -m pip install --quiet -e ".[test]" -e $(PLUGIN)
+	$(BIN)/python -m pip install --quiet -e ".[test,ray]" -e $(PLUGIN)
 	touch $(STAMP)
 
 # The main job on a small default: expert episodes of both splits → MCAP → LeRobot datasets.
@@ -39,6 +39,11 @@ test: install
 
 bench: install
 	$(BIN)/python -m demo_factory.bench --out bench/results.json
+
+# The committed cards of the standard datasets (dataset_cards/<name>/README.md + contact sheet),
+# from a few freshly generated episodes per split in a temporary folder.
+cards: install
+	$(BIN)/python -m demo_factory.publish.cards --out dataset_cards
 
 clean:
 	rm -rf $(VENV) data outputs

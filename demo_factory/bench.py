@@ -1,13 +1,17 @@
-"""Benchmarks (``make bench``): generation speed, planner timing and expert success.
+"""Benchmarks (``make bench``): generation, planner, cameras, conversion and HiveFormer figures.
 
-Figures go to a JSON file; nothing here is a test and nothing asserts on time.
+Figures go to a JSON file; nothing here is a test and nothing asserts on time. ``--quick`` runs
+smaller counts (for a smoke run); the defaults are the counts the issues ask for.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
 import platform
+import subprocess
+import sys
 import tempfile
 import time
 from collections import Counter
@@ -18,6 +22,9 @@ from tqdm import tqdm
 
 from demo_factory.generate import EpisodeRequest, episode_seed, job_requests, library_versions, run_requests
 from demo_factory.tasks import get_task
+
+REPO = Path(__file__).resolve().parent.parent
+HIVEFORMER_MEASURE = REPO / "policies" / "lerobot_policy_hiveformer" / "measure_compute.py"
 
 
 def _timing(outcomes) -> dict:
@@ -30,6 +37,7 @@ def _timing(outcomes) -> dict:
         "failure_reasons": dict(Counter(o.reason for o in outcomes if not o.kept)),
         "seconds_per_episode_mean": float(np.mean([o.seconds for o in outcomes])),
         "seconds_per_episode_median": float(np.median([o.seconds for o in outcomes])),
+        "keyframes_per_episode_mean": float(np.mean([o.keyframes for o in outcomes])),
         "planning_seconds_per_transition_median": float(np.median(planning)) if planning else None,
         "planning_seconds_per_transition_p95": float(np.percentile(planning, 95)) if planning else None,
         "planner_attempts_histogram": {str(k): attempts[k] for k in sorted(attempts)},
@@ -37,7 +45,7 @@ def _timing(outcomes) -> dict:
 
 
 def bench_recorded_episode_speed(task_name: str, episodes: int) -> dict:
-    """Seconds per recorded episode (3 cameras, 128x128) on variations of length 3."""
+    """Seconds per recorded episode (3 cameras, 128x128, one process) on variations of length 3."""
     task = get_task(task_name)
     longest = [v for v in task.split_variations("train") if len(v.colours) == 3]
     requests = [EpisodeRequest(task_name, "train", longest[i % len(longest)].id, episode_seed(99, task_name, "train", i))
@@ -50,6 +58,17 @@ def bench_recorded_episode_speed(task_name: str, episodes: int) -> dict:
     return figures
 
 
+def bench_throughput(task_name: str, workers: int, dense_fps: float, episodes: int) -> dict:
+    """Episodes per minute of a recorded job (3 cameras, 128x128) with this many worker processes."""
+    requests = job_requests(task_name, "train", episodes, base_seed=1234, dense_fps=dense_fps)
+    with tempfile.TemporaryDirectory() as folder:
+        began = time.perf_counter()
+        outcomes = list(run_requests(requests, folder, workers=workers))
+        seconds = time.perf_counter() - began
+    return {"episodes": episodes, "kept": sum(o.kept for o in outcomes), "seconds": seconds,
+            "episodes_per_minute": 60.0 * len(outcomes) / seconds}
+
+
 def bench_expert_success(task_name: str, split: str, episodes: int) -> dict:
     """Expert success rate and planner figures over a job's episodes (no rendering)."""
     requests = job_requests(task_name, split, episodes, base_seed=0)
@@ -57,31 +76,157 @@ def bench_expert_success(task_name: str, split: str, episodes: int) -> dict:
     return _timing(outcomes)
 
 
+def bench_planner(queries: int, seed: int = 0) -> dict:
+    """Random feasible queries in a tabletop scene (table + four cubes): time per transition and
+    success within 10 seeded attempts."""
+    from demo_factory.planning import JointPlanner
+    from demo_factory.planning.planner import CollisionChecker
+    from demo_factory.sim import World
+    from demo_factory.sim.world import JOINT_LOWER, JOINT_UPPER
+
+    rng = np.random.default_rng(seed)
+    world = World()
+    for x, y in ((0.45, -0.15), (0.55, 0.1), (0.4, 0.2), (0.6, -0.05)):
+        world.add_box((0.0225,) * 3, (x, y, 0.0225), (0.8, 0.2, 0.2, 1), mass=0.0)
+    planner = JointPlanner()
+
+    def feasible() -> np.ndarray:
+        while True:  # a collision-free configuration with the hand above the table
+            q = rng.uniform(JOINT_LOWER, JOINT_UPPER)
+            world.reset_arm(q)
+            if world.gripper_pose()[2] > 0.05 and CollisionChecker(world).valid(q):
+                return q
+
+    pairs = [(feasible(), feasible()) for _ in range(queries)]
+    seconds, attempts, solved = [], Counter(), 0
+    for index, (start, goal) in enumerate(tqdm(pairs, desc="planner queries")):
+        world.reset_arm(start)
+        result = planner.plan(world, start, goal, episode_seed=seed, transition=index)
+        seconds.append(sum(result.solve_seconds))
+        attempts[len(result.attempts)] += 1
+        solved += result.ok
+    world.close()
+    return {"queries": queries, "success_within_10_attempts": solved / queries,
+            "seconds_per_transition_median": float(np.median(seconds)),
+            "seconds_per_transition_p95": float(np.percentile(seconds, 95)),
+            "attempts_histogram": {str(k): attempts[k] for k in sorted(attempts)}}
+
+
+def bench_render(frames: int) -> dict:
+    """Milliseconds to render one camera (RGB + depth + segmentation) at 128x128, per camera."""
+    from demo_factory.sim import World
+    from demo_factory.sim.camera import render
+    from demo_factory.sim.world import HAND_LINK
+
+    world = World()
+    get_task("tower").build_scene(world, get_task("tower").variation(2000), np.random.default_rng(0))
+    hand = world.link_pose(HAND_LINK)
+    figures = {}
+    for spec in world.cameras:
+        render(world.client, spec, world.image_size, hand)  # warm the caches
+        began = time.perf_counter()
+        for _ in range(frames):
+            render(world.client, spec, world.image_size, hand)
+        figures[spec.name] = 1000.0 * (time.perf_counter() - began) / frames
+    world.close()
+    return {"ms_per_camera": figures}
+
+
+def bench_conversion(episodes: int) -> dict:
+    """Converter frames per second next to a plain ``LeRobotDataset.add_frame`` loop on the same input."""
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+    from demo_factory.convert.converter import ConvertOptions, convert
+    from demo_factory.convert.features import KEYFRAME_FPS, dataset_features, dataset_frame
+    from demo_factory.record import iter_episode_paths, read_episode
+
+    with tempfile.TemporaryDirectory() as folder:
+        raw = Path(folder) / "raw"
+        list(run_requests(job_requests("push_buttons", "train", episodes, base_seed=77), raw, workers=os.cpu_count() or 1))
+        paths = iter_episode_paths(raw)
+        frames = sum(len(read_episode(p).keyframes) for p in paths)
+
+        began = time.perf_counter()
+        convert(ConvertOptions(inputs=[raw], out=Path(folder) / "converted", repo_id="bench/converted",
+                               val_ratio=0.0, progress=False), log=lambda _: None)
+        converter_seconds = time.perf_counter() - began
+
+        began = time.perf_counter()
+        first = read_episode(paths[0])
+        dataset = LeRobotDataset.create("bench/reference", KEYFRAME_FPS,
+                                        dataset_features(first.info.cameras, first.info.image_size),
+                                        root=Path(folder) / "reference", use_videos=False)
+        for path in paths:
+            episode = read_episode(path)
+            for frame in episode.keyframe_frames():
+                dataset.add_frame(dataset_frame(episode, frame, episode.info.instruction))
+            dataset.save_episode()
+        dataset.finalize()
+        reference_seconds = time.perf_counter() - began
+    return {"episodes": len(paths), "frames": frames,
+            "converter_frames_per_second": frames / converter_seconds,
+            "reference_add_frame_loop_frames_per_second": frames / reference_seconds,
+            "converter_over_reference": reference_seconds / converter_seconds}
+
+
+def bench_hiveformer() -> dict:
+    """The plugin's own measurement script (train step at batch 8, inference per step), on CPU."""
+    result = subprocess.run([sys.executable, str(HIVEFORMER_MEASURE), "--batch-size", "8"],
+                            capture_output=True, text=True, env={**os.environ, "HF_HUB_OFFLINE": "1"})
+    if result.returncode != 0:
+        return {"error": result.stderr.strip().splitlines()[-1] if result.stderr.strip() else "failed"}
+    text = result.stdout
+    return json.loads(text[text.index("{"):])
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(prog="python -m demo_factory.bench", description=__doc__)
     parser.add_argument("--out", default="bench/results.json", help="where to write the figures (JSON)")
-    parser.add_argument("--episodes", type=int, default=100, help="episodes per task and split for success rates")
-    parser.add_argument("--speed-episodes", type=int, default=20, help="recorded episodes per task for speed")
+    parser.add_argument("--quick", action="store_true", help="small counts: a smoke run, not figures to report")
+    parser.add_argument("--only", help="comma-separated sections to run (default: all): " + ", ".join(SECTIONS))
     args = parser.parse_args(argv)
-    began = time.time()
-    results = {
-        "machine": {"cpu_count": __import__("os").cpu_count(), "platform": platform.platform(),
-                    "python": platform.python_version()},
-        "versions": library_versions(),
-        "recorded_episode_speed_3_objects_3_cameras_128px": {
-            task: bench_recorded_episode_speed(task, args.speed_episodes) for task in ("push_buttons", "tower")
-        },
-        "expert_success": {
-            f"{task}/{split}": bench_expert_success(task, split, args.episodes)
-            for task in ("push_buttons", "tower") for split in ("train", "test")
-        },
-    }
-    results["total_seconds"] = time.time() - began
+    counts = QUICK if args.quick else FULL
+    sections = args.only.split(",") if args.only else list(SECTIONS)
+    unknown = [s for s in sections if s not in SECTIONS]
+    if unknown:
+        parser.error(f"unknown section {unknown[0]!r}; accepted: {', '.join(SECTIONS)}")
     out = Path(args.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(results, indent=2) + "\n")
+    results = json.loads(out.read_text()) if out.exists() and args.only else {}
+    results.update({
+        "machine": {"cpu_count": os.cpu_count(), "platform": platform.platform(), "python": platform.python_version(),
+                    "load_average_at_start": os.getloadavg()},
+        "versions": library_versions(),
+        "counts": counts,
+    })
+    for section in sections:
+        began = time.time()
+        results[section] = SECTIONS[section](counts)
+        results[section + "_wall_seconds"] = time.time() - began
+        out.parent.mkdir(parents=True, exist_ok=True)
+        out.write_text(json.dumps(results, indent=2) + "\n")  # after each section: partial figures survive
     print(json.dumps(results, indent=2))
     return 0
+
+
+FULL = {"speed_episodes": 20, "throughput_episodes": 12, "success_episodes": 100, "planner_queries": 1000,
+        "render_frames": 100, "conversion_episodes": 30}
+QUICK = {"speed_episodes": 2, "throughput_episodes": 2, "success_episodes": 4, "planner_queries": 10,
+         "render_frames": 5, "conversion_episodes": 3}
+SECTIONS = {
+    "recorded_episode_speed_3_objects_3_cameras_128px": lambda c: {
+        task: bench_recorded_episode_speed(task, c["speed_episodes"]) for task in ("push_buttons", "tower")},
+    "episodes_per_minute": lambda c: {
+        f"{task}/workers={workers}/{'dense_10fps' if dense else 'keyframes'}":
+            bench_throughput(task, workers, dense, c["throughput_episodes"])
+        for task in ("push_buttons", "tower") for workers in (1, 2) for dense in (0.0, 10.0)},
+    "expert_success": lambda c: {
+        f"{task}/{split}": bench_expert_success(task, split, c["success_episodes"])
+        for task in ("push_buttons", "tower") for split in ("train", "test")},
+    "planner": lambda c: bench_planner(c["planner_queries"]),
+    "camera_render": lambda c: bench_render(c["render_frames"]),
+    "conversion": lambda c: bench_conversion(c["conversion_episodes"]),
+    "hiveformer_cpu": lambda c: bench_hiveformer(),
+}
 
 
 if __name__ == "__main__":

@@ -13,6 +13,7 @@ import numpy as np
 
 from demo_factory.convert.cli import add_parser as add_convert_parser
 from demo_factory.evaluate.cli import add_parser as add_eval_parser
+from demo_factory.publish.cli import add_parser as add_publish_parser
 from demo_factory.tasks import SPLITS, TASKS, get_task
 
 MANIFEST_FILE = "manifest.json"
@@ -279,6 +280,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     add_convert_parser(commands)
     add_eval_parser(commands)
+    add_publish_parser(commands)
     from demo_factory.collect.cli import add_parser as add_collect_parser  # it imports this module's UsageError
 
     add_collect_parser(commands)

@@ -234,10 +234,16 @@ def _run_in_worker(args) -> EpisodeOutcome:
     return run_episode(request, out_dir)
 
 
-def run_requests(requests: list[EpisodeRequest], out_dir: str | Path | None, workers: int = 1, progress=None):
-    """Generate every request (in parallel processes when ``workers`` > 1), yielding outcomes in order.
+EXECUTORS = ("process", "ray")
 
-    A request whose recording already exists in ``out_dir`` is not generated again.
+
+def run_requests(requests: list[EpisodeRequest], out_dir: str | Path | None, workers: int = 1,
+                 executor: str = "process", address: str | None = None):
+    """Generate every request, yielding outcomes in order.
+
+    ``executor="process"`` uses ``workers`` local processes; ``"ray"`` schedules the same
+    per-episode work on a Ray cluster (``address``, or a local one). A request whose recording
+    already exists in ``out_dir`` is not generated again.
     """
     todo = []
     for request in requests:
@@ -246,6 +252,11 @@ def run_requests(requests: list[EpisodeRequest], out_dir: str | Path | None, wor
             yield EpisodeOutcome(request, True, None, str(existing), 0, resumed=True)
         else:
             todo.append((request, out_dir))
+    if executor == "ray":
+        from demo_factory.ray_executor import run_on_ray
+
+        yield from run_on_ray(todo, address=address, num_cpus=workers)
+        return
     if workers <= 1:
         for item in todo:
             yield _run_in_worker(item)

@@ -96,3 +96,14 @@ def test_a_training_variation_requested_for_test_is_refused_as_a_leak(tmp_path):
     assert result.returncode == 2
     assert "is a train variation of tower" in result.stderr and "would leak train data into a test split" in result.stderr
     assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.slow
+def test_ray_executor_gives_the_same_files_as_the_process_pool(tmp_path):
+    from demo_factory.generate import job_requests, run_requests
+
+    requests = job_requests("push_buttons", "train", 3, 5, image_size=(32, 32))
+    pool = list(run_requests(requests, tmp_path / "pool", workers=2))
+    ray = list(run_requests(requests, tmp_path / "ray", workers=2, executor="ray"))
+    assert [o.kept for o in ray] == [o.kept for o in pool] == [True] * 3
+    assert files(tmp_path / "ray") == files(tmp_path / "pool")
