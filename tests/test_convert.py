@@ -14,7 +14,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from demo_factory.convert import SPLITS, unpack_depth, world_points
-from demo_factory.convert.cli import main
+from demo_factory.cli import main
 from demo_factory.convert.usage import act_train_args
 from demo_factory.instructions import colour_words, corrupt_instruction
 from demo_factory.record import (

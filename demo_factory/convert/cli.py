@@ -90,15 +90,3 @@ def summary(result: ConvertResult) -> str:
               "  " + act_train_command(train.repo_id, root, result.cameras, result.image_size,
                                        Path("outputs/train/act_" + result.task))]
     return "\n".join(lines)
-
-
-def main(argv: list[str] | None = None) -> int:
-    """Stand-alone entry (``python -m demo_factory.convert.cli``) until the main CLI wires it in."""
-    parser = argparse.ArgumentParser(prog="demo-factory")
-    add_parser(parser.add_subparsers(dest="command", required=True))
-    args = parser.parse_args(argv)
-    return args.run(args)
-
-
-if __name__ == "__main__":
-    sys.exit(main())

@@ -59,15 +59,3 @@ def run(args: argparse.Namespace) -> int:
     print(f"\nLoad a split from the Hub:\n  python -c 'from lerobot.datasets.lerobot_dataset import LeRobotDataset as D; "
           f"print(D(\"{first}\"))'\nTrain on it: lerobot-train --dataset.repo_id={first} ... (see the card)")
     return 0
-
-
-def main(argv: list[str] | None = None) -> int:
-    """Stand-alone entry (``python -m demo_factory.publish.cli``) until the main CLI wires it in."""
-    parser = argparse.ArgumentParser(prog="demo-factory")
-    add_parser(parser.add_subparsers(dest="command", required=True))
-    args = parser.parse_args(argv)
-    return args.run(args)
-
-
-if __name__ == "__main__":
-    sys.exit(main())
