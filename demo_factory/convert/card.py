@@ -122,6 +122,12 @@ def render_card(result: ConvertResult, template: Path = TEMPLATE) -> str:
         example = "; ".join(f'"{t}"' for t in task.synthetic_instructions(v))
         task_text = (f"{task.description} Palette ({len(task.palette)} colours): {', '.join(task.palette)}. "
                      f"Synthetic instruction templates, e.g. for {', '.join(v.colours)}: {example}.")
+        default_test = {v.id for v in task.split_variations("test")}
+        named = sorted({(s.variation_id, ",".join(s.colours)) for s in result.sources
+                        if s.split == "test" and s.variation_id not in default_test})
+        if named:
+            task_text += (" Named test variations (generated with `--variation` / `--variations-from`, beyond the "
+                          f"default test set): {'; '.join(f'{vid} ({colours})' for vid, colours in named)}.")
     else:
         task_text = result.task
     assignment = result.human_assignment
