@@ -6,6 +6,7 @@ the same inputs give a byte-identical recording, in any process and in any order
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import multiprocessing
 import os
@@ -57,6 +58,7 @@ class EpisodeOutcome:
     attempts_per_transition: list[int] = field(default_factory=list)
     planning_seconds: list[float] = field(default_factory=list)  # wall-clock per planned transition
     seconds: float = 0.0
+    attempt_log: list[dict] = field(default_factory=list)  # every planner attempt, with its solve time
     resumed: bool = False
 
 
@@ -196,12 +198,14 @@ def run_episode(request: EpisodeRequest, out_dir: str | Path | None) -> EpisodeO
         record_keyframe(0, start_pose, world.gripper_command, "start")
         executor = KeyframeExecutor(world, kinematics, JointPlanner(), request.episode_seed, task.graspable_bodies())
         targets = task.expert(world)
-        attempts_log, attempts_used, planning_seconds = [], [], []
+        attempts_log, attempt_log, attempts_used, planning_seconds = [], [], [], []
         reason = None
         for index, target in enumerate(targets, start=1):
             outcome = executor.execute(target, transition=index)
             if outcome.plan is not None:
                 attempts_log += outcome.plan.attempts
+                attempt_log += [{**dataclasses.asdict(a), "solve_seconds": round(t, 4)}
+                                for a, t in zip(outcome.plan.attempts, outcome.plan.solve_seconds)]
                 attempts_used.append(len(outcome.plan.attempts))
                 planning_seconds.append(sum(outcome.plan.solve_seconds))
             if not outcome.ok:
@@ -219,7 +223,7 @@ def run_episode(request: EpisodeRequest, out_dir: str | Path | None) -> EpisodeO
             else:
                 writer.abort()
         return EpisodeOutcome(request, reason is None, reason, path, len(targets) + 1, attempts_used,
-                              planning_seconds, time.perf_counter() - began)
+                              planning_seconds, time.perf_counter() - began, attempt_log)
     except BaseException:
         if writer is not None:
             writer.abort()
