@@ -94,6 +94,8 @@ def _is_generation_file(name: str) -> bool:
 
 # -- commands ---------------------------------------------------------------------------------
 def cmd_tasks(args) -> int:
+    from demo_factory.suites import SUITES
+
     rows = [("task", "category", "variations", "train", "test", "description")]
     for name in sorted(TASKS):
         task = get_task(name)
@@ -102,10 +104,41 @@ def cmd_tasks(args) -> int:
     widths = [max(len(r[i]) for r in rows) for i in range(5)]
     for row in rows:
         print("  ".join(cell.ljust(w) for cell, w in zip(row, widths)) + "  " + row[5])
+    for suite, members in SUITES.items():
+        print(f"\nsuite {suite}: {', '.join(members)}")
     return 0
 
 
 def cmd_generate(args) -> int:
+    if args.suite is None:
+        if args.episodes_per_task:
+            raise UsageError("--episodes-per-task needs --suite (with --task use --episodes)")
+        return generate_job(args)
+    return generate_suite(args)
+
+
+def generate_suite(args) -> int:
+    """Every task of the suite as its own job in ``OUT/<task>/`` (resumable and shardable alike)."""
+    from demo_factory.suites import suite_tasks
+
+    if args.variation or args.variations_from or args.episodes_per_variation:
+        raise UsageError("--suite generates each task's own split variations; --variation, --variations-from and "
+                         "--episodes-per-variation need --task")
+    tasks = suite_tasks(args.suite)
+    out = Path(args.out)
+    check_output_folder(out, lambda name: name in tasks)
+    for task in tasks:
+        check_output_folder(out / task, _is_generation_file)
+    codes = []
+    for task in tasks:
+        job = argparse.Namespace(**{**vars(args), "task": task, "out": str(out / task),
+                                    "episodes": args.episodes_per_task or args.episodes})
+        codes.append(generate_job(job))
+    return max(codes)
+
+
+def generate_job(args) -> int:
+    """One task's job: the requests, the manifest, the episodes and the generation summary."""
     from tqdm import tqdm
 
     from demo_factory.generate import ManifestMismatch, job_requests, record_job, remove_stale_partials, run_requests, shard_requests
@@ -234,6 +267,12 @@ def cmd_inspect(args) -> int:
 
 
 # -- parser -----------------------------------------------------------------------------------
+def suite_names() -> list[str]:
+    from demo_factory.suites import SUITES
+
+    return list(SUITES)
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="demo-factory",
@@ -241,8 +280,9 @@ def build_parser() -> argparse.ArgumentParser:
     )
     commands = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
-    tasks = commands.add_parser("tasks", help="list the tasks, their variation counts and split sizes",
-                                description="List the tasks, their variation counts and train/test split sizes.")
+    tasks = commands.add_parser("tasks", help="list the tasks, their categories, variation counts and split sizes",
+                                description="List the tasks, their categories, variation counts and train/test split "
+                                            "sizes, and the suites.")
     tasks.set_defaults(run=cmd_tasks)
 
     gen = commands.add_parser(
@@ -251,7 +291,10 @@ def build_parser() -> argparse.ArgumentParser:
                     "episode to one MCAP file. Episode i uses the split's variation i mod n. Re-running the "
                     "same command skips episodes already recorded.",
     )
-    gen.add_argument("--task", required=True, choices=sorted(TASKS), help="task name (see `demo-factory tasks`)")
+    which = gen.add_mutually_exclusive_group(required=True)
+    which.add_argument("--task", choices=list(TASKS), help="task name (see `demo-factory tasks`)")
+    which.add_argument("--suite", choices=sorted(suite_names()),
+                       help="every task of a suite (e.g. ten_tasks), each into OUT/<task>/ as its own job")
     gen.add_argument("--split", choices=SPLITS,
                      help="variation split (default: train; test when variations are named)")
     gen.add_argument("--episodes", type=positive_int, default=10,
@@ -261,6 +304,8 @@ def build_parser() -> argparse.ArgumentParser:
                           "id (repeatable)")
     gen.add_argument("--variations-from", metavar="JSONL",
                      help="generate every distinct variation named in a human-instruction file (converter format)")
+    gen.add_argument("--episodes-per-task", type=positive_int,
+                     help="with --suite: episodes of each task (default: --episodes)")
     gen.add_argument("--episodes-per-variation", type=positive_int,
                      help="with named variations: this many episodes of each (instead of --episodes in all)")
     gen.add_argument("--seed", type=int, default=0, help="base seed; episode seeds derive from it (default: 0)")

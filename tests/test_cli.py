@@ -21,7 +21,7 @@ def test_tasks_lists_variation_counts_and_splits(capsys):
 
 
 @pytest.mark.parametrize("args, message", [
-    (["--task", "nope"], "invalid choice: 'nope' (choose from 'push_buttons', 'tower')"),
+    (["--task", "nope"], "invalid choice: 'nope' (choose from 'push_buttons', 'tower', 'reach_target'"),
     (["--task", "tower", "--split", "val"], "invalid choice: 'val' (choose from 'train', 'test')"),
     (["--task", "tower", "--episodes", "0"], "0 is not allowed; must be at least 1"),
     (["--task", "tower", "--image-size", "big"], "'big' is not an image size"),

@@ -13,7 +13,7 @@ from demo_factory.collect.pictures import PictureCache, default_cache_folder
 from demo_factory.collect.server import CollectApp, CollectServer
 from demo_factory.collect.store import InstructionFile, check_language
 from demo_factory.instructions.human import HumanInstructionError
-from demo_factory.tasks import SPLITS, TASKS, get_task
+from demo_factory.tasks import MULTI_VARIATION_TASKS, SPLITS, get_task
 
 
 def port_number(text: str) -> int:
@@ -35,7 +35,7 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
                     "file in the format `convert --human-instructions` reads. Several people can write at "
                     "once; re-running the same command resumes with the file's rows.",
     )
-    parser.add_argument("--task", required=True, choices=sorted(TASKS), help="task name (see `demo-factory tasks`)")
+    parser.add_argument("--task", required=True, choices=MULTI_VARIATION_TASKS, help="task name (see `demo-factory tasks`)")
     parser.add_argument("--split", default="test", choices=SPLITS,
                         help="variation split; human instructions are for test variations only (default: test)")
     parser.add_argument("--out", required=True, help="the .jsonl file to append to (created if missing)")

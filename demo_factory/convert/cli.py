@@ -36,7 +36,8 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     parser.add_argument("--human-instructions", type=Path, metavar="FILE",
                         help="JSONL file of human-written instructions for test variations "
                              "(default: the file shipped with demo_factory for the task)")
-    parser.add_argument("--task", help="convert only this task's recordings (needed when the inputs mix tasks)")
+    parser.add_argument("--task", help="convert only this task's recordings (default: all; several tasks make one "
+                                       "multi-task dataset)")
     parser.add_argument("--skip-invalid", action="store_true",
                         help="leave out truncated, corrupt or inconsistent recordings (listed in the summary and card)")
     parser.add_argument("--overwrite", action="store_true", help="replace an existing output folder")

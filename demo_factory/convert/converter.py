@@ -35,6 +35,7 @@ from demo_factory.tasks import TASKS, get_task
 
 IMAGE_WRITER_THREADS = 4  # PNG encoding in threads: the writer's bottleneck besides stats
 GENERATION_SUMMARIES = "generation_summary*.json"  # written by `demo-factory generate`, one per job
+MULTI_TASK = "multi_task"  # the dataset's task label when the inputs' tasks form no named suite
 
 
 class ConvertError(Exception):
@@ -49,7 +50,7 @@ class ConvertOptions:
     granularity: str = "keyframe"
     val_ratio: float = 0.1
     human_instructions: Path | None = None  # None: the file shipped for the task, if any
-    task: str | None = None  # None: the single task found in the inputs
+    task: str | None = None  # None: every task found in the inputs (several make a multi-task dataset)
     skip_invalid: bool = False
     overwrite: bool = False
     progress: bool = True
@@ -129,7 +130,7 @@ def check_options(options: ConvertOptions) -> None:
         raise ConvertError(f"--repo-id {options.repo_id!r} is not a Hub repo id; expected owner/name "
                            "(letters, digits, '-', '_', '.')")
     if options.task is not None and options.task not in TASKS:
-        raise ConvertError(f"unknown task {options.task!r}; accepted: {', '.join(sorted(TASKS))}")
+        raise ConvertError(f"unknown task {options.task!r}; accepted: {', '.join(TASKS)}")
     out = options.out.resolve()
     if out.exists() and not options.overwrite:
         raise ConvertError(f"output {options.out} already exists; pass --overwrite to replace it")
@@ -183,10 +184,11 @@ class _Survey:
     sources: list[SourceEpisode]
     invalid: list[tuple[Path, str]]
     other_tasks: dict[str, int]
-    task: str
+    task: str  # the task, or for a multi-task dataset its suite's name (else "multi_task")
     cameras: list[str]
     image_size: tuple[int, int]
     fps: int
+    tasks: tuple[str, ...] = ()  # every task whose recordings are converted
 
 
 def survey(paths: list[Path], options: ConvertOptions) -> _Survey:
@@ -215,10 +217,13 @@ def survey(paths: list[Path], options: ConvertOptions) -> _Survey:
         task = next(iter(tasks))
     elif not tasks:
         raise ConvertError("no valid recordings left to convert")
-    else:
-        raise ConvertError(f"the inputs hold recordings of several tasks ({_counts(tasks)}); choose one with --task")
-    other_tasks = {t: n for t, n in tasks.items() if t != task}
-    sources = [s for s in sources if s.task == task]
+    else:  # a multi-task dataset: each frame's task string is its episode's instruction, as always
+        from demo_factory.suites import suite_of
+
+        task = suite_of(tasks) or MULTI_TASK
+    converted = tuple(sorted(tasks)) if options.task is None else (task,)
+    other_tasks = {t: n for t, n in tasks.items() if t not in converted}
+    sources = [s for s in sources if s.task in converted]
     first = sources[0].path
     cameras, image_size, dense_fps = layouts[first]
     kept = []
@@ -238,7 +243,7 @@ def survey(paths: list[Path], options: ConvertOptions) -> _Survey:
         fps = int(round(dense_fps))
         if abs(dense_fps - fps) > 1e-6 or fps <= 0:
             raise ConvertError(f"dense rate {dense_fps} fps of {first} is not a whole number; LeRobot needs integer fps")
-    return _Survey(kept, invalid, other_tasks, task, list(cameras), image_size, fps)
+    return _Survey(kept, invalid, other_tasks, task, list(cameras), image_size, fps, converted)
 
 
 def convert_command(options: ConvertOptions, task: str) -> str:
@@ -307,6 +312,7 @@ def write_split(plan: SplitPlan, root: Path, repo_id: str, survey_: _Survey, gra
                 "colours": list(planned.source.colours),
                 "episode_seed": planned.source.episode_seed,
                 "instruction": planned.instruction,
+                **({"task": planned.source.task} if len(survey_.tasks) > 1 else {}),
                 **({"human_instruction_line": row.line, "author": row.author, "language": row.language} if row else {}),
             })
         dataset.finalize()
@@ -325,19 +331,35 @@ def write_split(plan: SplitPlan, root: Path, repo_id: str, survey_: _Survey, gra
                         len({e.source.variation_id for e in plan.episodes}))
 
 
+def plan_multi_task_splits(sources: list[SourceEpisode], tasks, val_ratio: float) -> dict[str, SplitPlan]:
+    """Each task's splits planned alone (its own val hold-out), then merged split by split in task order."""
+    merged: dict[str, SplitPlan] = {}
+    for task in tasks:
+        plans, _ = plan_splits([s for s in sources if s.task == task], val_ratio, None)
+        for name, plan in plans.items():
+            merged.setdefault(name, SplitPlan(name, plan.instruction_source)).episodes.extend(plan.episodes)
+    return merged
+
+
 def convert(options: ConvertOptions, log: Callable[[str], None] = print) -> ConvertResult:
     """Run a whole conversion; raises ``ConvertError`` for problems the user can fix."""
     began = time.perf_counter()
     check_options(options)
     paths = find_recordings(options.inputs)
     found = survey(paths, options)
-    human_file, human_rows = _load_human_rows(options, found.task)
-    plans, assignment = plan_splits(found.sources, options.val_ratio, human_rows)
+    if len(found.tasks) == 1:
+        human_file, human_rows = _load_human_rows(options, found.task)
+        plans, assignment = plan_splits(found.sources, options.val_ratio, human_rows)
+    else:
+        human_file, human_rows, assignment = None, None, None
+        plans = plan_multi_task_splits(found.sources, found.tasks, options.val_ratio)
     skipped_splits = []
     for name, plan in plans.items():
         if plan.episodes:
             continue
-        if name == "test_unseen_human" and human_rows is None:
+        if name == "test_unseen_human" and len(found.tasks) > 1:
+            why = "human-written instructions are matched per task: convert a task alone for this split"
+        elif name == "test_unseen_human" and human_rows is None:
             why = f"no human-instruction file for {found.task} (pass --human-instructions FILE)"
         elif name == "test_unseen_human" and any(s.split == "test" for s in found.sources):
             why = f"no row of {human_file} names a test variation that has recordings"
@@ -370,7 +392,7 @@ def convert(options: ConvertOptions, log: Callable[[str], None] = print) -> Conv
             invalid=found.invalid, sources=found.sources, human_file=human_file, human_assignment=assignment,
             seconds=0.0, frames_written=sum(s.frames for s in summaries), command=convert_command(options, found.task),
             other_tasks=found.other_tasks,
-            generation_summaries=[g for g in find_generation_summaries(options.inputs) if g.get("task") == found.task],
+            generation_summaries=[g for g in find_generation_summaries(options.inputs) if g.get("task") in found.tasks],
         )
         from demo_factory.convert.card import write_card  # after the datasets: it reads their first frames
 

@@ -35,7 +35,7 @@ def add_parser(commands) -> argparse.ArgumentParser:
                                           "use each split's variations and instructions")
     parser.add_argument("--splits", help="comma-separated splits (default: every split of the dataset; "
                                          f"without --dataset: {','.join(TASK_SPLITS)})")
-    parser.add_argument("--task", choices=sorted(TASKS), help="task, when no --dataset is given")
+    parser.add_argument("--task", choices=list(TASKS), help="task, when no --dataset is given")
     parser.add_argument("--episodes", type=positive_int, default=100, help="episodes per split (default: 100)")
     parser.add_argument("--seed", type=int, default=0, help="base evaluation seed (default: 0)")
     parser.add_argument("--step-slack", type=int, default=2,

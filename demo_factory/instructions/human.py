@@ -95,7 +95,7 @@ def _parse_row(text: str, error) -> HumanInstruction:
         raise error(f"unknown field {unknown[0]!r}; accepted: {', '.join(FIELDS)}")
     task_name = row.get("task")
     if task_name not in TASKS:
-        raise error(f"unknown task {task_name!r}; accepted: {', '.join(sorted(TASKS))}")
+        raise error(f"unknown task {task_name!r}; accepted: {', '.join(TASKS)}")
     task = get_task(task_name)
     variation = None
     if "colours" in row:

@@ -26,16 +26,33 @@ class KeyframeTarget:
     motion: str
 
 
+CATEGORIES = ("planning", "tools", "long term", "rotation-invariant", "motion planner", "multimodal",
+              "precision", "screw", "visual occlusion")  # the HiveFormer supplement's task categories
+
+
 class Task(ABC):
-    """A multi-variation tabletop task. Subclasses register themselves in ``registry``."""
+    """A tabletop task with enumerated variations. Subclasses register themselves in ``registry``.
+
+    A variation is a sequence of words from ``palette``: colours by default (``variation_kind``
+    "colour"), or the names of another kind of goal ("slot", "shelf", ...). A task whose goal does
+    not vary has one variation, named by its single palette word, and differs between episodes by
+    the placement drawn from the episode seed only.
+
+    Splits: colour tasks deal their variations to disjoint train and test sets (``n_train`` /
+    ``n_test``). With ``shared_split`` both splits hold every variation (tasks with a handful of
+    goals, where the paper has no unseen-variation split); their test episodes differ from the
+    training ones only by the scene seed, and ``check_split_membership`` accepts either split.
+    """
 
     name: str
     description: str
-    category: str
+    category: str  # one of CATEGORIES
     palette: tuple[str, ...]
+    variation_kind: str = "colour"
     max_sequence: int = 3
     n_train: int = 100
     n_test: int = 100
+    shared_split: bool = False
     split_seed: int = 0
     gripper_starts_open: bool = True
 
@@ -59,22 +76,24 @@ class Task(ABC):
         return self.variations[variation_id]
 
     def variation_of(self, colours) -> Variation:
-        """The variation of a colour sequence (a list or "maroon,navy"; any case, grey = gray).
+        """The variation of a colour sequence (a list or "maroon,navy"; any case, grey = gray), or of
+        another kind's words for tasks whose variations are not colours (e.g. "top" for a shelf).
 
-        Raises ``ValueError`` naming an unknown or repeated colour, or a sequence that is too long.
+        Raises ``ValueError`` naming an unknown or repeated word, or a sequence that is too long.
         """
+        kind = self.variation_kind
         words = colours.split(",") if isinstance(colours, str) else list(colours)
         sequence = []
         for word in words:
-            colour = canonical_colour(word)
-            if colour is None or colour not in self.palette:
-                raise ValueError(f"unknown colour {word.strip()!r} for {self.name}; accepted: {', '.join(self.palette)}")
-            if colour in sequence:
-                raise ValueError(f"colour {colour!r} is repeated in {','.join(w.strip() for w in words)!r}; "
-                                 "each colour may appear once")
-            sequence.append(colour)
+            value = canonical_colour(word) if kind == "colour" else word.strip().lower()
+            if value is None or value not in self.palette:
+                raise ValueError(f"unknown {kind} {word.strip()!r} for {self.name}; accepted: {', '.join(self.palette)}")
+            if value in sequence:
+                raise ValueError(f"{kind} {value!r} is repeated in {','.join(w.strip() for w in words)!r}; "
+                                 f"each {kind} may appear once")
+            sequence.append(value)
         if not 1 <= len(sequence) <= self.max_sequence:
-            raise ValueError(f"{','.join(sequence)!r} has {len(sequence)} colours; {self.name} takes 1 to {self.max_sequence}")
+            raise ValueError(f"{','.join(sequence)!r} has {len(sequence)} {kind}s; {self.name} takes 1 to {self.max_sequence}")
         return _enumeration(type(self))[2][tuple(sequence)]
 
     def parse_variation(self, text: str) -> Variation:
@@ -88,6 +107,8 @@ class Task(ABC):
 
     def check_split_membership(self, variation: Variation, split: str) -> None:
         """Refuse a variation that belongs to the other split (it would leak data across splits)."""
+        if self.shared_split:
+            return
         other = "train" if split == "test" else "test"
         if split == "train" and variation not in self.splits["train"]:
             raise ValueError(f"variation {variation.id} ({variation.name}) is not a train variation of {self.name}; "
@@ -135,9 +156,12 @@ class Task(ABC):
 
 @cache
 def _enumeration(cls: type[Task]):
-    """A task class's variations, their train/test split and a colour-sequence index."""
+    """A task class's variations, their train/test split and a word-sequence index."""
     variations = enumerate_sequences(cls.palette, cls.max_sequence)
-    splits = split_variations(variations, cls.n_train, cls.n_test, cls.split_seed)
+    if cls.shared_split:
+        splits = {"train": list(variations), "test": list(variations)}
+    else:
+        splits = split_variations(variations, cls.n_train, cls.n_test, cls.split_seed)
     return variations, splits, {v.colours: v for v in variations}
 
 

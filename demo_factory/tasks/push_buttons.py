@@ -6,6 +6,7 @@ import numpy as np
 import pybullet as p
 
 from demo_factory.sim.world import TOP_DOWN
+from demo_factory.tasks import motions
 from demo_factory.tasks.base import KeyframeTarget, Task, spread_positions
 from demo_factory.tasks.palette import PUSH_BUTTON_COLOURS, rgba
 from demo_factory.tasks.variations import Variation
@@ -72,14 +73,8 @@ class PushButtons(Task):
         tip = world.fingertip_offset()
         keyframes = []
         for colour in self.instructed.colours:
-            top = self.cap_top(colour)
-            above = (*(top + [0, 0, APPROACH_HEIGHT + tip]), *TOP_DOWN)
-            pressed = (*(top + [0, 0, tip - PRESS_DEPTH]), *TOP_DOWN)
-            keyframes += [
-                KeyframeTarget(above, 0.0, "planned"),
-                KeyframeTarget(pressed, 0.0, "cartesian"),
-                KeyframeTarget(above, 0.0, "cartesian"),
-            ]
+            keyframes += motions.press(self.cap_top(colour), TOP_DOWN, approach=APPROACH_HEIGHT + tip,
+                                       depth=PRESS_DEPTH - tip)
         return keyframes
 
     def on_step(self, world) -> None:

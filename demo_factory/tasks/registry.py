@@ -3,13 +3,38 @@
 from __future__ import annotations
 
 from demo_factory.tasks.base import Task
+from demo_factory.tasks.pick_and_lift import PickAndLift
+from demo_factory.tasks.pick_up_cup import PickUpCup
+from demo_factory.tasks.push_button import PushButton
 from demo_factory.tasks.push_buttons import PushButtons
+from demo_factory.tasks.put_knife_on_chopping_board import PutKnifeOnChoppingBoard
+from demo_factory.tasks.put_money_in_safe import PutMoneyInSafe
+from demo_factory.tasks.reach_target import ReachTarget
+from demo_factory.tasks.slide_block_to_target import SlideBlockToTarget
+from demo_factory.tasks.stack_wine import StackWine
+from demo_factory.tasks.take_money_out_safe import TakeMoneyOutSafe
+from demo_factory.tasks.take_umbrella_out_of_umbrella_stand import TakeUmbrellaOutOfUmbrellaStand
 from demo_factory.tasks.tower import Tower
 
+# The multi-variation tasks come first: error messages list the accepted names in this order.
 TASKS: dict[str, type[Task]] = {
     PushButtons.name: PushButtons,
     Tower.name: Tower,
+    ReachTarget.name: ReachTarget,
+    PushButton.name: PushButton,
+    PickAndLift.name: PickAndLift,
+    PickUpCup.name: PickUpCup,
+    SlideBlockToTarget.name: SlideBlockToTarget,
+    PutKnifeOnChoppingBoard.name: PutKnifeOnChoppingBoard,
+    StackWine.name: StackWine,
+    PutMoneyInSafe.name: PutMoneyInSafe,
+    TakeMoneyOutSafe.name: TakeMoneyOutSafe,
+    TakeUmbrellaOutOfUmbrellaStand.name: TakeUmbrellaOutOfUmbrellaStand,
 }
+
+# Tasks whose variations are ordered colour sequences with unseen test variations (HiveFormer's
+# multi-variation tasks): the ones human-written instructions are collected for.
+MULTI_VARIATION_TASKS: tuple[str, ...] = tuple(name for name, cls in TASKS.items() if cls.max_sequence > 1)
 
 
 def get_task(name: str) -> Task:
@@ -17,4 +42,4 @@ def get_task(name: str) -> Task:
     try:
         return TASKS[name]()
     except KeyError:
-        raise ValueError(f"unknown task {name!r}; accepted: {', '.join(sorted(TASKS))}") from None
+        raise ValueError(f"unknown task {name!r}; accepted: {', '.join(TASKS)}") from None

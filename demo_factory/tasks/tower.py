@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from demo_factory.sim.world import TOP_DOWN
+from demo_factory.tasks import motions
 from demo_factory.tasks.base import KeyframeTarget, Task, spread_positions
 from demo_factory.tasks.palette import TOWER_COLOURS, rgba
 from demo_factory.tasks.variations import Variation
@@ -19,12 +19,6 @@ ABOVE = 0.10  # approach height above a grasp or place pose
 PLACE_CLEARANCE = 0.004  # release a cube this far above its resting height
 POSITION_TOLERANCE = 0.02  # xy distance from the target spot that still counts as on it
 HEIGHT_TOLERANCE = 0.01
-
-
-def _top_down(yaw: float) -> tuple[float, ...]:
-    """The top-down grasp orientation turned by ``yaw`` about the world z axis."""
-    rotation = Rotation.from_euler("z", yaw) * Rotation.from_quat(TOP_DOWN)
-    return tuple(rotation.as_quat())
 
 
 class Tower(Task):
@@ -73,25 +67,11 @@ class Tower(Task):
 
     def expert(self, world) -> list[KeyframeTarget]:
         keyframes = []
-        place_orientation = _top_down(0.0)
         for level, colour in enumerate(self.instructed.colours):
             position, _ = world.body_pose(self.cubes[colour])
-            grasp_orientation = _top_down(self.grasp_yaw(colour))
-            grasp = (*position, *grasp_orientation)
-            above_grasp = (*(position + [0, 0, ABOVE]), *grasp_orientation)
             place_z = (level + 0.5) * CUBE + PLACE_CLEARANCE
-            place = (*self.target, place_z, *place_orientation)
-            above_place = (*self.target, place_z + ABOVE, *place_orientation)
-            keyframes += [
-                KeyframeTarget(above_grasp, 1.0, "planned"),
-                KeyframeTarget(grasp, 1.0, "cartesian"),
-                KeyframeTarget(grasp, 0.0, "gripper"),
-                KeyframeTarget(above_grasp, 0.0, "cartesian"),
-                KeyframeTarget(above_place, 0.0, "planned"),
-                KeyframeTarget(place, 0.0, "cartesian"),
-                KeyframeTarget(place, 1.0, "gripper"),
-                KeyframeTarget(above_place, 1.0, "cartesian"),
-            ]
+            keyframes += motions.grasp(position, motions.top_down(self.grasp_yaw(colour)), ABOVE)
+            keyframes += motions.place([*self.target, place_z], motions.top_down(0.0), ABOVE)
         return keyframes
 
     def graspable_bodies(self) -> list[int]:

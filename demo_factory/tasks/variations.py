@@ -1,4 +1,4 @@
-"""Deterministic enumeration of colour-sequence variations and their disjoint train/test split."""
+"""Deterministic enumeration of variations (word sequences) and their disjoint train/test split."""
 
 from __future__ import annotations
 
@@ -12,7 +12,11 @@ SPLITS = ("train", "test")
 
 @dataclass(frozen=True)
 class Variation:
-    """An ordered colour sequence; ``id`` is its index in the task's full enumeration."""
+    """An ordered sequence of palette words; ``id`` is its index in the task's full enumeration.
+
+    The words are colours for colour tasks (``colours`` keeps that name because recordings, the
+    converter and the instruction tools read it), or another kind of goal: a slot, a shelf.
+    """
 
     id: int
     colours: tuple[str, ...]

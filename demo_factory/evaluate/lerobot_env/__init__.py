@@ -67,7 +67,7 @@ class DemoFactoryEnv(EnvConfig):
 
     def __post_init__(self):
         if self.task not in TASKS:
-            raise ValueError(f"unknown task {self.task!r}; accepted: {', '.join(sorted(TASKS))}")
+            raise ValueError(f"unknown task {self.task!r}; accepted: {', '.join(TASKS)}")
         self.features = _features(self.image_height, self.image_width)
 
     @property

@@ -1,0 +1,38 @@
+"""Named task suites: the tasks a multi-task dataset is generated from.
+
+``ten_tasks`` is the HiveFormer paper's Table 1 multi-task set. ``demo-factory generate --suite``
+writes each task's episodes into its own sub-folder (``OUT/<task>/``), a complete single-task job
+with its own manifest and generation summary, so every task resumes, shards and converts alone;
+``demo-factory convert --in OUT`` turns the whole folder into one multi-task dataset.
+"""
+
+from __future__ import annotations
+
+SUITES: dict[str, tuple[str, ...]] = {
+    "ten_tasks": (
+        "reach_target",
+        "push_button",
+        "pick_and_lift",
+        "pick_up_cup",
+        "slide_block_to_target",
+        "put_knife_on_chopping_board",
+        "stack_wine",
+        "put_money_in_safe",
+        "take_money_out_safe",
+        "take_umbrella_out_of_umbrella_stand",
+    ),
+}
+
+
+def suite_tasks(name: str) -> tuple[str, ...]:
+    """The tasks of a suite; ``ValueError`` naming the accepted suites for an unknown name."""
+    try:
+        return SUITES[name]
+    except KeyError:
+        raise ValueError(f"unknown suite {name!r}; accepted: {', '.join(SUITES)}") from None
+
+
+def suite_of(tasks) -> str | None:
+    """The suite made of exactly these tasks, if any."""
+    wanted = set(tasks)
+    return next((name for name, members in SUITES.items() if set(members) == wanted), None)

@@ -1,0 +1,73 @@
+"""Pick and lift: grasp the instructed coloured block and lift it up to the target sphere."""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from demo_factory.tasks import motions
+from demo_factory.tasks.base import KeyframeTarget, Task, spread_positions
+from demo_factory.tasks.objects import held, marker
+from demo_factory.tasks.palette import TOWER_COLOURS, rgba
+from demo_factory.tasks.variations import Variation
+
+N_BLOCKS = 3  # the instructed block and two distractors
+CUBE = 0.04
+WORKSPACE = ((0.36, 0.62), (-0.22, 0.22))
+MIN_SPACING = 0.11
+TARGET_HEIGHT = (0.18, 0.30)
+TARGET_RADIUS = 0.02
+TOLERANCE = 0.03  # block centre to target centre
+TARGET_RGBA = (1.0, 1.0, 1.0, 0.5)
+
+
+def folded_yaw(orientation) -> float:
+    """A square object's yaw folded into [-45°, 45°): any pair of faces can be grasped."""
+    yaw = Rotation.from_quat(orientation).as_euler("xyz")[2]
+    return float((yaw + np.pi / 4) % (np.pi / 2) - np.pi / 4)
+
+
+class PickAndLift(Task):
+    name = "pick_and_lift"
+    description = "Grasp the instructed coloured block and lift it to the translucent target sphere."
+    category = "rotation-invariant"
+    palette = TOWER_COLOURS
+    max_sequence = 1
+    n_train = n_test = 10
+    split_seed = 20220303
+
+    def synthetic_instructions(self, variation: Variation) -> list[str]:
+        c = variation.colours[0]
+        return [f"pick up the {c} block and lift it up to the target", f"grasp the {c} cube and raise it to the sphere",
+                f"lift the {c} block to the target height"]
+
+    def build_scene(self, world, variation: Variation, rng: np.random.Generator) -> None:
+        distractors = [x for x in self.palette if x not in variation.colours]
+        colours = [variation.colours[0], *rng.choice(distractors, N_BLOCKS - 1, replace=False)]
+        points = spread_positions(rng, N_BLOCKS + 1, WORKSPACE, MIN_SPACING)
+        self.world = world
+        self.blocks = {}
+        for colour, xy in zip(colours, points[1:]):
+            yaw = rng.uniform(-np.pi / 4, np.pi / 4)
+            self.blocks[str(colour)] = world.add_box((CUBE / 2,) * 3, (*xy, CUBE / 2), rgba(str(colour)), mass=0.06,
+                                                     orientation=Rotation.from_euler("z", yaw).as_quat(), friction=1.0)
+        self.target = np.array([*points[0], rng.uniform(*TARGET_HEIGHT)])
+        marker(world, self.target, TARGET_RADIUS, TARGET_RGBA)
+        self.instructed = variation.colours[0]
+
+    def expert(self, world) -> list[KeyframeTarget]:
+        position, orientation = world.body_pose(self.blocks[self.instructed])
+        grip = motions.top_down(folded_yaw(orientation))
+        return motions.grasp(position, grip) + motions.reach(self.target, grip, motions.CLOSED)
+
+    def graspable_bodies(self) -> list[int]:
+        return list(self.blocks.values())
+
+    def success(self, world) -> bool:
+        block = self.blocks[self.instructed]
+        position, _ = world.body_pose(block)
+        return float(np.linalg.norm(position - self.target)) < TOLERANCE and held(world, block)
+
+    def scene_facts(self) -> dict:
+        return {"target": [round(float(v), 6) for v in self.target],
+                "blocks": {c: [round(float(v), 6) for v in self.world.body_pose(b)[0]] for c, b in self.blocks.items()}}

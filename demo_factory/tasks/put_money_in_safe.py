@@ -1,0 +1,60 @@
+"""Put money in safe: take the banknote bundle from the table and slide it onto the instructed shelf."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from demo_factory.tasks import motions
+from demo_factory.tasks.base import KeyframeTarget, Task
+from demo_factory.tasks.objects import at_rest, free_of_robot
+from demo_factory.tasks.safe import FRONT_REGION, GRIP_FROM_REAR, HAND_CLEARANCE, NOTE_HALF, SHELVES, Safe, add_note, note_rear_grip
+from demo_factory.tasks.variations import Variation
+
+NOTE_REGION = ((0.38, 0.42), (-0.2, 0.2))
+INSERT_TRAVEL = 0.15  # the straight slide into the compartment (starts with the note 2.5 cm out)
+
+
+class PutMoneyInSafe(Task):
+    name = "put_money_in_safe"
+    description = "Take the banknote bundle off the table and put it on the instructed shelf of the open safe."
+    category = "motion planner"
+    palette = SHELVES
+    variation_kind = "shelf"
+    max_sequence = 1
+    shared_split = True
+
+    def synthetic_instructions(self, variation: Variation) -> list[str]:
+        s = variation.colours[0]
+        return [f"put the money away in the safe on the {s} shelf", f"place the banknotes on the {s} shelf of the safe",
+                f"stash the money in the {s} compartment of the safe"]
+
+    def build_scene(self, world, variation: Variation, rng: np.random.Generator) -> None:
+        (fx0, fx1), (fy0, fy1) = FRONT_REGION
+        self.safe = Safe(world, rng.uniform(fx0, fx1), rng.uniform(fy0, fy1))
+        (nx0, nx1), (ny0, ny1) = NOTE_REGION
+        self.world = world
+        self.note = add_note(world, (rng.uniform(nx0, nx1), rng.uniform(ny0, ny1)), NOTE_HALF[2])
+        self.shelf = variation.colours[0]
+
+    def expert(self, world) -> list[KeyframeTarget]:
+        grip = motions.top_down(0.0)
+        z = self.safe.note_grasp_height(self.shelf)
+        inserted = np.array([self.safe.front - HAND_CLEARANCE, self.safe.y, z])
+        outside = inserted - [INSERT_TRAVEL, 0.0, 0.0]
+        return (motions.grasp(note_rear_grip(world, self.note), grip)
+                + [KeyframeTarget(motions.pose(outside, grip), motions.CLOSED, "planned"),
+                   KeyframeTarget(motions.pose(inserted, grip), motions.CLOSED, "cartesian"),
+                   KeyframeTarget(motions.pose(inserted, grip), motions.OPEN, "gripper"),
+                   KeyframeTarget(motions.pose(outside, grip), motions.OPEN, "cartesian")])
+
+    def graspable_bodies(self) -> list[int]:
+        return [self.note]
+
+    def success(self, world) -> bool:
+        position, _ = world.body_pose(self.note)
+        return (self.safe.inside(position) and self.safe.shelf_of(world, self.note) == self.shelf
+                and at_rest(world, self.note) and free_of_robot(world, self.note))
+
+    def scene_facts(self) -> dict:
+        return {"safe_front": round(float(self.safe.front), 6), "safe_y": round(float(self.safe.y), 6),
+                "note": [round(float(v), 6) for v in self.world.body_pose(self.note)[0]], "grip_from_rear": GRIP_FROM_REAR}

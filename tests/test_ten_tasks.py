@@ -1,0 +1,164 @@
+"""The ten-task suite of the HiveFormer paper: task contracts, experts, suite generation and conversion."""
+
+import json
+
+import numpy as np
+import pytest
+
+from demo_factory.cli import main
+from demo_factory.execution import KeyframeExecutor
+from demo_factory.generate import SETTLE_AFTER_STEPS, SETTLE_BEFORE_STEPS, job_requests, run_requests
+from demo_factory.planning import JointPlanner
+from demo_factory.sim import Kinematics, World
+from demo_factory.sim.world import HOME
+from demo_factory.suites import SUITES
+from demo_factory.tasks import TASKS, get_task, motions
+from demo_factory.tasks.base import CATEGORIES
+
+TEN = SUITES["ten_tasks"]
+
+
+def test_the_suite_has_ten_registered_tasks_each_with_a_category():
+    assert len(TEN) == 10 and set(TEN) <= set(TASKS)
+    assert all(get_task(name).category in CATEGORIES for name in TASKS)
+
+
+@pytest.mark.parametrize("name", TEN)
+def test_variations_are_deterministic_and_splits_documented(name):
+    task = get_task(name)
+    assert task.variations == get_task(name).variations and task.variations
+    assert [v.id for v in task.variations] == list(range(len(task.variations)))
+    train, test = task.split_variations("train"), task.split_variations("test")
+    if task.shared_split:
+        assert train == test == task.variations
+        task.check_split_membership(task.variations[0], "test")  # every variation belongs to both
+    else:
+        assert train and test and not {v.colours for v in train} & {v.colours for v in test}
+    assert task.parse_variation(task.variations[-1].name) == task.variations[-1]
+
+
+@pytest.mark.parametrize("name", TEN)
+def test_at_least_three_instruction_templates_naming_the_goal(name):
+    task = get_task(name)
+    for variation in task.variations[:5]:
+        texts = task.synthetic_instructions(variation)
+        assert len(set(texts)) >= 3
+        if task.variation_kind != "placement":
+            assert all(variation.colours[0] in text for text in texts)
+
+
+def _scene(name, seed=3, variation_index=0):
+    task = get_task(name)
+    world = World(image_size=(32, 32))
+    world.reset_arm(HOME, gripper_open=1.0 if task.gripper_starts_open else 0.0)
+    variation = task.split_variations("train")[variation_index]
+    task.build_scene(world, variation, np.random.default_rng(seed))
+    world.step(SETTLE_BEFORE_STEPS)
+    world.step_callbacks.append(task.on_step)
+    return task, world
+
+
+def _wrong_keyframes(task, world):
+    """A deliberately wrong action per task: the wrong object, the wrong place, or stopping short."""
+    grip = motions.top_down(0.0)
+    name = task.name
+    if name == "reach_target":
+        other = next(c for c in task.spheres if c != task.target)
+        return motions.reach(task.spheres[other], grip)
+    if name == "push_button":
+        other = next(c for c in task.buttons if c != task.instructed.colours[0])
+        return motions.press(task.cap_top(other), grip, 0.06 + world.fingertip_offset(), 0.009 - world.fingertip_offset())
+    if name in ("pick_and_lift", "pick_up_cup"):  # the distractor instead
+        objects = task.blocks if name == "pick_and_lift" else task.cups
+        instructed = task.instructed
+        task.instructed = next(c for c in objects if c != instructed)
+        keyframes = task.expert(world)
+        task.instructed = instructed
+        return keyframes
+    if name == "slide_block_to_target":  # a push that stops halfway
+        keyframes = task.expert(world)
+        start, end = np.array(keyframes[1].pose[:3]), np.array(keyframes[2].pose[:3])
+        middle = tuple((start + end) / 2) + keyframes[2].pose[3:]
+        return [keyframes[0], keyframes[1], type(keyframes[2])(middle, 0.0, "cartesian")]
+    if name in ("put_knife_on_chopping_board", "stack_wine"):  # put the object back down beside the target
+        keyframes = task.expert(world)
+        put_back = keyframes[1].pose
+        return keyframes[:4] + motions.place(put_back[:3], put_back[3:])
+    if name == "put_money_in_safe":  # the wrong shelf
+        shelf = task.shelf
+        task.shelf = next(s for s in task.palette if s != shelf)
+        keyframes = task.expert(world)
+        task.shelf = shelf
+        return keyframes
+    if name == "take_money_out_safe":  # grasp the note but let go before pulling it out
+        keyframes = task.expert(world)
+        return keyframes[:3] + [type(keyframes[2])(keyframes[2].pose, 1.0, "gripper")]
+    if name == "take_umbrella_out_of_umbrella_stand":  # lift only part of the way
+        keyframes = task.expert(world)
+        short = np.array(keyframes[2].pose[:3]) + [0.0, 0.0, 0.06]
+        return keyframes[:3] + motions.lift(short, keyframes[2].pose[3:])
+    raise AssertionError(f"no wrong action written for {name}")
+
+
+@pytest.mark.parametrize("name", TEN)
+def test_success_is_false_at_reset_and_after_a_wrong_action(name):
+    task, world = _scene(name)
+    kinematics = Kinematics()
+    try:
+        assert not task.success(world)
+        executor = KeyframeExecutor(world, kinematics, JointPlanner(), 3, task.graspable_bodies())
+        for index, target in enumerate(_wrong_keyframes(task, world), start=1):
+            assert executor.execute(target, index).ok
+        world.step(SETTLE_AFTER_STEPS)
+        assert not task.success(world)
+    finally:
+        world.close()
+        kinematics.close()
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", TEN)
+def test_expert_succeeds_on_at_least_19_of_20_seeded_episodes(name):
+    outcomes = list(run_requests(job_requests(name, "train", 20, base_seed=0), out_dir=None, workers=2))
+    failures = [(o.request.variation_id, o.request.episode_seed, o.reason) for o in outcomes if not o.kept]
+    assert len(outcomes) == 20 and len(failures) <= 1, failures
+
+
+def test_tasks_command_lists_category_and_variation_count(capsys):
+    assert main(["tasks"]) == 0
+    out = capsys.readouterr().out
+    for name in TEN:
+        line = next(line for line in out.splitlines() if line.startswith(name + " "))
+        task = get_task(name)
+        assert task.category in line and f" {len(task.variations)} " in line
+    assert "suite ten_tasks: reach_target, push_button" in out
+
+
+def test_suite_generation_refuses_task_options():
+    with pytest.raises(SystemExit):
+        main(["generate", "--suite", "ten_tasks", "--task", "tower", "--out", "x"])
+
+
+@pytest.mark.slow
+def test_suite_generates_one_folder_per_task_and_converts_to_one_multi_task_dataset(tmp_path, capsys):
+    raw = tmp_path / "raw"
+    args = ["generate", "--suite", "ten_tasks", "--episodes-per-task", "1", "--image-size", "32", "--workers", "2",
+            "--out", str(raw)]
+    assert main(args) == 0
+    assert sorted(p.name for p in raw.iterdir()) == sorted(TEN)
+    for name in TEN:
+        assert len(list((raw / name).glob("*.mcap"))) == 1
+        assert json.loads((raw / name / "manifest.json").read_text())["jobs"][f"{name}/train"]["episodes"] == 1
+    assert main(args) == 0  # resuming: nothing left to do, nothing rewritten
+    assert "(1 already present)" in capsys.readouterr().out
+
+    out = tmp_path / "dataset"
+    assert main(["convert", "--in", str(raw), "--out", str(out), "--repo-id", "me/ten_tasks", "--val-ratio", "0",
+                 "--no-progress"]) == 0
+    info = json.loads((out / "train" / "meta" / "info.json").read_text())
+    episodes = info["demo_factory"]["episodes"]
+    assert info["demo_factory"]["task"] == "ten_tasks" and sorted(e["task"] for e in episodes) == sorted(TEN)
+    import pandas as pd
+
+    tasks = pd.read_parquet(out / "train" / "meta" / "tasks.parquet")
+    assert sorted(tasks.index) == sorted(e["instruction"] for e in episodes)
