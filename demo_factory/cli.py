@@ -6,6 +6,7 @@ import argparse
 import json
 import os
 import sys
+import time
 from collections import Counter
 from pathlib import Path
 
@@ -14,6 +15,8 @@ import numpy as np
 from demo_factory.convert.cli import add_parser as add_convert_parser
 from demo_factory.evaluate.cli import add_parser as add_eval_parser
 from demo_factory.publish.cli import add_parser as add_publish_parser
+from demo_factory.generate import EXECUTORS
+from demo_factory.report import REPORT_FILES, write_report
 from demo_factory.tasks import SPLITS, TASKS, get_task
 
 MANIFEST_FILE = "manifest.json"
@@ -88,8 +91,9 @@ def check_output_folder(out: Path, own_file) -> None:
 
 
 def _is_generation_file(name: str) -> bool:
-    return (name.endswith(".mcap") or name.endswith(".mcap.partial") or name == MANIFEST_FILE
-            or (name.startswith("generation_summary") and name.endswith(".json")))
+    return (name.endswith(".mcap") or name.endswith(".mcap.partial") or name in (MANIFEST_FILE, *REPORT_FILES)
+            or (name.startswith("generation_summary") and name.endswith(".json"))
+            or (name.startswith("generation_log") and name.endswith(".jsonl")))
 
 
 # -- commands ---------------------------------------------------------------------------------
@@ -126,7 +130,7 @@ def generate_suite(args) -> int:
                          "--episodes-per-variation need --task")
     tasks = suite_tasks(args.suite)
     out = Path(args.out)
-    check_output_folder(out, lambda name: name in tasks)
+    check_output_folder(out, lambda name: name in tasks or name in REPORT_FILES)
     for task in tasks:
         check_output_folder(out / task, _is_generation_file)
     codes = []
@@ -134,6 +138,8 @@ def generate_suite(args) -> int:
         job = argparse.Namespace(**{**vars(args), "task": task, "out": str(out / task),
                                     "episodes": args.episodes_per_task or args.episodes})
         codes.append(generate_job(job))
+    if write_report(out) is not None:
+        print(f"\ngeneration report of the suite: {out / 'report.md'} (also report.json, report.png)")
     return max(codes)
 
 
@@ -167,10 +173,12 @@ def generate_job(args) -> int:
     except OSError as exc:
         raise UsageError(f"--out {out}: cannot write there ({exc.strerror})") from None
     remove_stale_partials(out, requests)
+    began = time.perf_counter()
     outcomes = []
     bar = tqdm(total=len(requests), desc=f"{args.task}/{args.split}", unit="episode", file=sys.stderr)
     try:
-        for outcome in run_requests(requests, out, workers=args.workers):
+        for outcome in run_requests(requests, out, workers=args.workers, executor=args.executor,
+                                    address=args.address):
             outcomes.append(outcome)
             bar.update(1)
             bar.set_postfix(kept=sum(o.kept for o in outcomes), failed=sum(not o.kept for o in outcomes))
@@ -182,9 +190,16 @@ def generate_job(args) -> int:
               file=sys.stderr)
         return 1
     bar.close()
-    summary = generation_summary(args, outcomes)
+    summary = generation_summary(args, outcomes, time.perf_counter() - began)
     (out / f"generation_summary_{args.task}_{args.split}.json").write_text(json.dumps(summary, indent=2) + "\n")
+    with open(out / f"generation_log_{args.task}_{args.split}.jsonl", "a") as log:  # every attempt, every run
+        for o in outcomes:
+            if not o.resumed:
+                log.write(json.dumps({"variation_id": o.request.variation_id, "episode_seed": o.request.episode_seed,
+                                      "kept": o.kept, "reason": o.reason, "seconds": round(o.seconds, 3),
+                                      "keyframes": o.keyframes, "planner_attempts": o.attempt_log}) + "\n")
     print_generation_summary(summary, out)
+    write_report(out)
     return 0 if summary["kept"] > 0 else 1
 
 
@@ -206,7 +221,7 @@ def named_variations(args) -> list:
     return list(dict.fromkeys(named))
 
 
-def generation_summary(args, outcomes) -> dict:
+def generation_summary(args, outcomes, total_seconds: float = 0.0) -> dict:
     """The figures a user wants after a generation run (also written to ``generation_summary_<task>_<split>.json``)."""
     fresh = [o for o in outcomes if not o.resumed]
     planning = [s for o in fresh for s in o.planning_seconds]
@@ -217,7 +232,10 @@ def generation_summary(args, outcomes) -> dict:
                             + [f"--variation={v}" for v in args.variation or []]
                             + (["--variations-from", args.variations_from] if args.variations_from else [])
                             + (["--episodes-per-variation", str(args.episodes_per_variation)]
-                               if args.episodes_per_variation else [])),
+                               if args.episodes_per_variation else [])
+                            + (["--image-size", "x".join(map(str, args.image_size))]
+                               if tuple(args.image_size) != (128, 128) else [])
+                            + (["--dense-fps", f"{args.dense_fps:g}"] if args.dense_fps else [])),
         "task": args.task,
         "split": args.split,
         "requested": len(outcomes),
@@ -232,6 +250,7 @@ def generation_summary(args, outcomes) -> dict:
         "planning_seconds_median": float(np.median(planning)) if planning else None,
         "planning_seconds_p95": float(np.percentile(planning, 95)) if planning else None,
         "seconds_per_episode": float(np.mean([o.seconds for o in fresh])) if fresh else None,
+        "total_seconds": total_seconds,
     }
 
 
@@ -316,6 +335,10 @@ def build_parser() -> argparse.ArgumentParser:
     gen.add_argument("--workers", type=positive_int, default=os.cpu_count() or 1,
                      help="parallel processes; files are identical for any number (default: the number of cores)")
     gen.add_argument("--shard", type=shard, help="run only shard i/N of the job (the shards' union is the job)")
+    gen.add_argument("--executor", choices=EXECUTORS, default="process",
+                     help="process: --workers local processes (default); ray: the same episodes on a Ray cluster "
+                          "(pip install -e '.[ray]')")
+    gen.add_argument("--address", help="with --executor ray: the cluster to join (default: start a local one)")
     gen.set_defaults(run=cmd_generate)
 
     ins = commands.add_parser("inspect", help="summarise one episode recording",

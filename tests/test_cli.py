@@ -59,7 +59,15 @@ def test_generate_then_inspect_then_resume(tmp_path):
     recordings = sorted(out.glob("*.mcap"))
     assert len(recordings) == 2
     summary = json.loads((out / "generation_summary_push_buttons_test.json").read_text())
-    assert summary["kept"] == 2 and summary["failed"] == []
+    assert summary["kept"] == 2 and summary["failed"] == [] and summary["total_seconds"] > 0
+    assert summary["command"].endswith("--image-size 32x32")  # enough to regenerate exactly
+    log = [json.loads(line) for line in (out / "generation_log_push_buttons_test.jsonl").read_text().splitlines()]
+    attempts = [a for episode in log for a in episode["planner_attempts"]]
+    assert len(log) == 2 and attempts and all({"seed", "status", "solve_seconds", "path_length"} <= set(a) for a in attempts)
+    report = json.loads((out / "report.json").read_text())["jobs"]
+    assert [(r["task"], r["split"], r["kept"]) for r in report] == [("push_buttons", "test", 2)]
+    assert "| push_buttons | test | 2 | 2 | 0 | 100.0% |" in (out / "report.md").read_text()
+    assert (out / "report.png").read_bytes()[:4] == b"\x89PNG"
 
     shown = run_cli("inspect", str(recordings[0]))
     assert shown.returncode == 0, shown.stderr
