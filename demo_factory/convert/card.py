@@ -17,6 +17,7 @@ from demo_factory.convert.splits import SplitPlan, SourceEpisode
 from demo_factory.convert.usage import act_train_args, act_train_command, load_command
 from demo_factory.instructions import COLOUR_SYNONYMS
 from demo_factory.record import read_episode
+from demo_factory.suites import SUITES
 from demo_factory.tasks import TASKS, get_task
 
 if TYPE_CHECKING:
@@ -106,6 +107,20 @@ def _feature_rows(cameras: list[str], image_size: tuple[int, int]) -> str:
     return "\n".join(rows)
 
 
+def _variation_text(task) -> str:
+    """How variations and the seen / unseen splits work, for one task or (``None``) a suite."""
+    if task is not None and not task.shared_split:
+        return (f"A *variation* is an ordered {task.variation_kind} sequence. The task enumerates its variations "
+                f"deterministically and deals them into disjoint **train** (seen) and **test** (unseen) sets of "
+                f"{len(task.split_variations('train'))} and {len(task.split_variations('test'))} variations. Train and "
+                "val only hold seen variations; every `test_unseen_*` split only holds unseen ones. `variation_id` (a "
+                "feature) is the variation's index in the task's enumeration.")
+    return ("Each task enumerates its variations deterministically; `variation_id` (a feature) is the variation's "
+            "index in its task's enumeration. Colour tasks deal their variations into disjoint **train** (seen) and "
+            "**test** (unseen) sets; tasks with a handful of placement, slot or shelf variations use every variation "
+            "in both, so their test episodes differ from training ones only in the scene (a different seed).")
+
+
 def render_card(result: ConvertResult, template: Path = TEMPLATE) -> str:
     """The card's markdown text for a conversion result."""
     task = get_task(result.task) if result.task in TASKS else None
@@ -128,6 +143,14 @@ def render_card(result: ConvertResult, template: Path = TEMPLATE) -> str:
         if named:
             task_text += (" Named test variations (generated with `--variation` / `--variations-from`, beyond the "
                           f"default test set): {'; '.join(f'{vid} ({colours})' for vid, colours in named)}.")
+    elif result.task in SUITES:
+        members = [get_task(name) for name in SUITES[result.task]]
+        task_text = (f"The {result.task} suite (the HiveFormer paper's multi-task set) in one multi-task dataset: "
+                     "each frame's `task` string is its episode's instruction.\n\n"
+                     "| task | category | variations (train / test) | goal |\n|---|---|---|---|\n"
+                     + "\n".join(f"| `{t.name}` | {t.category} | {len(t.split_variations('train'))} / "
+                                  f"{len(t.split_variations('test'))} ({t.variation_kind}) | {t.description} |"
+                                  for t in members))
     else:
         task_text = result.task
     assignment = result.human_assignment
@@ -151,8 +174,7 @@ def render_card(result: ConvertResult, template: Path = TEMPLATE) -> str:
         "repo_id": result.repo_id,
         "granularity": result.granularity,
         "task_text": task_text,
-        "n_train_variations": len(task.split_variations("train")) if task else "?",
-        "n_test_variations": len(task.split_variations("test")) if task else "?",
+        "variation_text": _variation_text(task),
         "split_rows": split_rows,
         "skipped_splits": skipped,
         "corruption_table": ", ".join(f"{k} → {v}" for k, v in COLOUR_SYNONYMS.items()) + " (grey → ash as for gray)",
