@@ -19,6 +19,7 @@ from lerobot_policy_hiveformer.modeling_hiveformer import (
     keyframe_observations,
     project_to_pixels,
     quaternion_loss,
+    supervised_steps,
     tiny_random_clip_text_model,
 )
 
@@ -233,3 +234,19 @@ def test_config_rejects_bad_values():
         HiveformerConfig(hidden_dim=60, num_heads=8, device="cpu")
     with pytest.raises(ValueError, match="IDENTITY"):
         HiveformerConfig(normalization_mapping={"STATE": "MEAN_STD"}, device="cpu")
+
+
+def test_training_decodes_only_supervised_steps_with_the_same_predictions(tiny_dataset_root):
+    policy = make_tiny_policy(tiny_dataset_root).eval()
+    batch = history_batch(tiny_dataset_root, policy.config, [0, 1, 7])  # 2, 1 and 0 padded steps
+    supervised = supervised_steps(batch, batch["action"])
+    assert supervised.sum() == 6
+    obs = keyframe_observations(batch, policy.config)
+    instruction, instruction_mask = policy._encode_instructions(obs.instructions, obs.rgb.device)
+    with torch.no_grad():
+        window = policy.predict_keyframes(batch)  # every step, padding included: (3, 3, ...)
+        decoded = policy.model(obs, instruction, instruction_mask, decode=supervised)  # (6, ...)
+    assert decoded.position.shape == (6, 3) and decoded.pixel_attention.shape == (6, 3, 32, 32)
+    assert torch.allclose(decoded.position, window.position[supervised], atol=1e-6)
+    assert torch.allclose(decoded.quaternion, window.quaternion[supervised], atol=1e-6)
+    assert torch.allclose(decoded.pixel_attention, window.pixel_attention[supervised], atol=1e-6)

@@ -2,6 +2,11 @@
 
     python policies/lerobot_policy_hiveformer/measure_compute.py [--batch-size 8] [--threads 2]
 
+Times are medians over steps; `*_cpu_*` is the process's CPU time for the same steps (user + system, all
+threads), which tells a slow step on a busy machine (wall > CPU / threads) from a slow step. The load
+average is the machine's at the start. Peak RSS is the whole process's (the frozen text encoder
+included) after the training steps.
+
 The frozen text encoder has CLIP ViT-B/32's text architecture with random weights (saved to a temporary
 directory and loaded through `text_encoder_path`, the offline route), so no download is needed; the
 parameter counts are those of the real model.
@@ -9,6 +14,8 @@ parameter counts are those of the real model.
 
 import argparse
 import json
+import os
+import resource
 import tempfile
 import time
 
@@ -73,9 +80,16 @@ def main() -> None:
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--train-steps", type=int, default=5)
     parser.add_argument("--rollout-steps", type=int, default=20)
+    parser.add_argument(
+        "--attention-dropout",
+        type=float,
+        default=None,
+        help="override the config's attention_dropout (default 0.1, as in the authors' code)",
+    )
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     torch.manual_seed(0)
+    load_average = os.getloadavg()
 
     with tempfile.TemporaryDirectory() as clip_dir:
         CLIPTextModel(CLIPTextConfig()).save_pretrained(clip_dir)  # ViT-B/32 text architecture
@@ -87,6 +101,8 @@ def main() -> None:
             input_features=inputs,
             output_features=outputs,
         )
+        if args.attention_dropout is not None:
+            config.attention_dropout = args.attention_dropout
         policy = HiveformerPolicy(config)
     trainable = sum(p.numel() for p in policy.parameters() if p.requires_grad)
     frozen = sum(p.numel() for p in policy.instruction_encoder.text_model.parameters())
@@ -94,15 +110,18 @@ def main() -> None:
     optimizer = torch.optim.AdamW(policy.get_optim_params(), lr=config.optimizer_lr)
     batch = observation_batch(args.batch_size, config.n_history, args.image_size)
     policy.train()
-    durations = []
+    durations, cpu_times = [], []
     for _ in range(args.train_steps + 1):
-        start = time.perf_counter()
+        start, cpu_start = time.perf_counter(), time.process_time()
         loss, _ = policy.forward(batch)
         optimizer.zero_grad()
         loss.backward()
         optimizer.step()
         durations.append(time.perf_counter() - start)
-    train_step_s = float(np.median(durations[1:]))  # the first step also encodes the instruction
+        cpu_times.append(time.process_time() - cpu_start)
+    # The first step also encodes the instruction.
+    train_step_s, train_step_cpu_s = float(np.median(durations[1:])), float(np.median(cpu_times[1:]))
+    peak_rss_gib = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20  # Linux: KiB
 
     policy.reset()
     durations = []
@@ -119,11 +138,15 @@ def main() -> None:
                 "trainable_parameters": trainable,
                 "frozen_text_encoder_parameters": frozen,
                 "train_step_s": round(train_step_s, 3),
+                "train_step_cpu_s": round(train_step_cpu_s, 3),
                 "train_batch_size": args.batch_size,
+                "attention_dropout": config.attention_dropout,
+                "peak_rss_gib_after_training": round(peak_rss_gib, 2),
                 "inference_ms_per_step_with_full_history": round(inference_ms, 1),
                 "n_history": config.n_history,
                 "image_size": args.image_size,
                 "threads": args.threads,
+                "load_average_1_5_15_min_at_start": [round(x, 2) for x in load_average],
             },
             indent=2,
         )

@@ -9,7 +9,7 @@ position is the softmax-weighted point cloud plus an offset; a small CNN predict
 """
 
 from collections import deque
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from pathlib import Path
 
 import torch
@@ -92,10 +92,11 @@ def gripper_mark(
     uv, in_front = project_to_pixels(gripper_xyz, calibration)
     rows = torch.arange(height, device=uv.device, dtype=uv.dtype)
     cols = torch.arange(width, device=uv.device, dtype=uv.dtype)
-    du2 = (cols - uv[..., 0, None]) ** 2  # (..., W)
-    dv2 = (rows - uv[..., 1, None]) ** 2  # (..., H)
-    blob = torch.exp(-(dv2[..., :, None] + du2[..., None, :]) / (2 * sigma_px**2))
-    return (blob * in_front[..., None, None].to(blob.dtype)).unsqueeze(-3)
+    # The Gaussian is separable: exp over H + W values and one outer product, not exp over H * W.
+    across = torch.exp(-((cols - uv[..., 0, None]) ** 2) / (2 * sigma_px**2))  # (..., W)
+    down = torch.exp(-((rows - uv[..., 1, None]) ** 2) / (2 * sigma_px**2))  # (..., H)
+    down = down * in_front[..., None].to(down.dtype)
+    return (down[..., :, None] * across[..., None, :]).unsqueeze(-3)
 
 
 def quaternion_loss(predicted: Tensor, target: Tensor) -> Tensor:
@@ -159,6 +160,14 @@ def keyframe_observations(batch: dict, config: HiveformerConfig) -> KeyframeObse
         step_valid=step_valid,
         instructions=list(instructions),
     )
+
+
+def take_steps(x: Tensor, steps: Tensor, leading_dims: int = 2) -> Tensor:
+    """x[steps] for a bool mask over x's leading dims, e.g. (B, T, ...) -> (M, ...).
+
+    Without a copy when every step is taken (the common case of a window without padding).
+    """
+    return x.flatten(0, leading_dims - 1) if bool(steps.all()) else x[steps]
 
 
 # --- Instruction encoders -------------------------------------------------------------------------
@@ -302,37 +311,56 @@ class ConvBlock(nn.Sequential):
 
 
 class UNetEncoder(nn.Module):
-    """Shared per-camera encoder: 8 and 16 channels at stride 1, then 4 stride-2 16-channel blocks."""
+    """Shared per-camera encoder: 8 and 16 channels at stride 1, then 4 stride-2 16-channel blocks.
+
+    The full-resolution stem is the authors' (released code): a 3x3 convolution to 8 channels and a 1x1
+    convolution to 16, each with LeakyReLU and no normalisation. It touches every pixel of every camera
+    of every step, so it dominates the encoder's cost; the stride-2 blocks carry the GroupNorm.
+    """
 
     def __init__(self, in_channels: int):
         super().__init__()
-        self.stem = nn.Sequential(ConvBlock(in_channels, 8), ConvBlock(8, ENCODER_CHANNELS))
+        self.stem = nn.Sequential(
+            nn.Conv2d(in_channels, 8, kernel_size=3, padding=1),
+            nn.LeakyReLU(LEAKY_SLOPE),
+            nn.Conv2d(8, ENCODER_CHANNELS, kernel_size=1),
+            nn.LeakyReLU(LEAKY_SLOPE),
+        )
         self.down = nn.ModuleList([ConvBlock(ENCODER_CHANNELS, ENCODER_CHANNELS, stride=2) for _ in range(4)])
 
     def forward(self, x: Tensor) -> list[Tensor]:
-        """(N, in, H, W) -> features at H, H/2, H/4, H/8, H/16 (16 channels each)."""
-        features = [self.stem(x)]
+        """(N, in, H, W) -> the decoder's skips: features at H/2, H/4, H/8, H/16 (16 channels each)."""
+        x = self.stem(x)  # (N, 16, H, W): only the first stride-2 block reads it
+        features = []
         for block in self.down:
-            features.append(block(features[-1]))
+            x = block(x)
+            features.append(x)
         return features
 
 
 class UNetDecoder(nn.Module):
-    """Transformer tokens + encoder skips -> one logit per pixel."""
+    """Transformer tokens + encoder skips -> one logit per pixel.
+
+    As in the authors' code, the last convolution runs at H/2 and is followed by a 2x bilinear
+    upsampling: no convolution at full resolution. The 1x1 logit layer is applied before that
+    upsampling, which gives the same values (both are linear per pixel and the interpolation
+    weights sum to 1) on a 1-channel instead of a 16-channel map.
+    """
 
     def __init__(self, token_dim: int):
         super().__init__()
         self.bottleneck = ConvBlock(token_dim + ENCODER_CHANNELS, ENCODER_CHANNELS)
-        self.up = nn.ModuleList([ConvBlock(2 * ENCODER_CHANNELS, ENCODER_CHANNELS) for _ in range(4)])
+        self.up = nn.ModuleList([ConvBlock(2 * ENCODER_CHANNELS, ENCODER_CHANNELS) for _ in range(3)])
         self.to_logit = nn.Conv2d(ENCODER_CHANNELS, 1, kernel_size=1)
 
     def forward(self, token_grid: Tensor, skips: list[Tensor]) -> Tensor:
         """token_grid: (N, D, H/16, W/16); skips from UNetEncoder. Returns (N, H, W)."""
-        x = self.bottleneck(torch.cat([token_grid, skips[-1]], dim=1))
+        x = self.bottleneck(torch.cat([token_grid, skips[-1]], dim=1))  # (N, 16, H/16, W/16)
         for block, skip in zip(self.up, reversed(skips[:-1]), strict=True):
             x = F.interpolate(x, size=skip.shape[-2:], mode="bilinear", align_corners=False)
-            x = block(torch.cat([x, skip], dim=1))
-        return self.to_logit(x).squeeze(1)
+            x = block(torch.cat([x, skip], dim=1))  # (N, 16, h, w) at H/8, H/4, H/2
+        logit = self.to_logit(x)  # (N, 1, H/2, W/2)
+        return F.interpolate(logit, scale_factor=2, mode="bilinear", align_corners=False).squeeze(1)
 
 
 class MultiHeadAttention(nn.Module):
@@ -344,19 +372,21 @@ class MultiHeadAttention(nn.Module):
         self.key_value = nn.Linear(dim, 2 * dim)
         self.out = nn.Linear(dim, dim)
 
-    def forward(self, queries: Tensor, keys: Tensor, allowed: Tensor) -> Tensor:
-        """queries (B, S, D), keys (B, K, D), allowed (B, S, K) bool -> (B, S, D)."""
+    def forward(self, queries: Tensor, keys: Tensor, allowed: Tensor | None = None) -> Tensor:
+        """queries (B, S, D), keys (B, K, D), allowed (B, 1, S, K) bool or None (all) -> (B, S, D)."""
         batch, length, dim = queries.shape
         head_dim = dim // self.num_heads
         q = self.query(queries).view(batch, length, self.num_heads, head_dim).transpose(1, 2)
         k, v = self.key_value(keys).view(batch, keys.shape[1], 2, self.num_heads, head_dim).unbind(2)
+        # Without dropout on the attention weights this takes PyTorch's fused kernel on CPU and GPU;
+        # with it, CPU falls back to materialising the (B, heads, S, K) weights (see attention_dropout).
         attended = F.scaled_dot_product_attention(
             q,
             k.transpose(1, 2),
             v.transpose(1, 2),
-            attn_mask=allowed.unsqueeze(1),
+            attn_mask=allowed,
             dropout_p=self.dropout if self.training else 0.0,
-        )
+        )  # (B, heads, S, head_dim)
         return self.out(attended.transpose(1, 2).reshape(batch, length, dim))
 
 
@@ -366,8 +396,8 @@ class BlockCausalLayer(nn.Module):
     def __init__(self, config: HiveformerConfig):
         super().__init__()
         dim = config.hidden_dim
-        self.cross_attention = MultiHeadAttention(dim, config.num_heads, config.dropout)
-        self.self_attention = MultiHeadAttention(dim, config.num_heads, config.dropout)
+        self.cross_attention = MultiHeadAttention(dim, config.num_heads, config.attention_dropout)
+        self.self_attention = MultiHeadAttention(dim, config.num_heads, config.attention_dropout)
         self.feedforward = nn.Sequential(
             nn.Linear(dim, config.feedforward_dim),
             nn.GELU(),
@@ -381,36 +411,72 @@ class BlockCausalLayer(nn.Module):
         self,
         tokens: Tensor,
         instruction: Tensor,
-        cross_allowed: Tensor,
-        self_allowed: Tensor,
+        cross_allowed: Tensor | None,
         history: Tensor | None = None,
     ) -> Tensor:
-        """tokens (B, S, D); instruction (B, L, D); self_allowed (B, S, S); cross_allowed (B, S, L + S' + S)
-        where `history` (B, S', D) holds earlier tokens that are keys but not queries (none by default)."""
-        keys = [instruction, tokens] if history is None else [instruction, history, tokens]
-        context = torch.cat(keys, dim=1)
-        tokens = self.norms[0](tokens + self.dropout(self.cross_attention(tokens, context, cross_allowed)))
-        tokens = self.norms[1](tokens + self.dropout(self.self_attention(tokens, tokens, self_allowed)))
-        return self.norms[2](tokens + self.dropout(self.feedforward(tokens)))
+        """tokens (B, T, N, D) -> (B, T, N, D); instruction (B, L, D); cross_allowed (B, 1, T*N, L + S' + T*N)
+        or None (all allowed), where `history` (B, S', D) holds earlier tokens that are keys but not queries
+        (none by default)."""
+        batch, steps, per_step, dim = tokens.shape
+        x = tokens.flatten(1, 2)  # (B, T*N, D)
+        keys = [instruction, x] if history is None else [instruction, history, x]
+        x = self.norms[0](x + self.dropout(self.cross_attention(x, torch.cat(keys, dim=1), cross_allowed)))
+        # Self-attention within each step: the steps are separate sequences, so no mask is needed.
+        x = x.view(batch * steps, per_step, dim)
+        x = self.norms[1](x + self.dropout(self.self_attention(x, x)))
+        x = self.norms[2](x + self.dropout(self.feedforward(x)))
+        return x.view(batch, steps, per_step, dim)
+
+
+def block_causal_mask(
+    step_valid: Tensor, instruction_mask: Tensor, per_step: int, use_history: bool, query_steps: slice
+) -> Tensor | None:
+    """Which keys each query token of the steps `query_steps` may attend to: (B, 1, Q*N, L + T*N) bool.
+
+    Keys are the instruction tokens (L, `instruction_mask` (B, L)), then the N tokens of each of the T
+    steps of the window: the query's own step and, with history, the earlier ones, unless padding
+    (`step_valid` (B, T) False). None when every query may attend to every key, so that attention runs
+    without a mask.
+    """
+    step = torch.arange(step_valid.shape[1], device=step_valid.device)
+    query_step = step[query_steps]
+    if use_history:
+        allowed = step[None, :] <= query_step[:, None]  # (Q, T)
+    else:
+        allowed = step[None, :] == query_step[:, None]
+    allowed = allowed[None] & step_valid[:, None, :]  # (B, Q, T)
+    history = allowed.repeat_interleave(per_step, dim=1).repeat_interleave(per_step, dim=2)  # (B, QN, TN)
+    instruction = instruction_mask[:, None, :].expand(-1, history.shape[1], -1)  # (B, Q*N, L)
+    mask = torch.cat([instruction, history], dim=2).unsqueeze(1)
+    return None if bool(mask.all()) else mask
 
 
 @dataclass
 class KeyframePrediction:
-    position: Tensor  # (B, T, 3) world metres
-    quaternion: Tensor  # (B, T, 4) unit, [qx, qy, qz, qw]
-    open_logit: Tensor  # (B, T)
-    pixel_attention: Tensor  # (B, T, C, H, W): softmax over all pixels of all cameras
+    """Predictions for the decoded steps; `...` is (B, T) for a whole window or (M,) for selected steps."""
+
+    position: Tensor  # (..., 3) world metres
+    quaternion: Tensor  # (..., 4) unit, [qx, qy, qz, qw]
+    open_logit: Tensor  # (...)
+    pixel_attention: Tensor  # (..., C, H, W): softmax over all pixels of all cameras
 
     def action(self) -> Tensor:
-        """(B, T, 8) = [x, y, z, qx, qy, qz, qw, open] with open thresholded to 0/1."""
+        """(..., 8) = [x, y, z, qx, qy, qz, qw, open] with open thresholded to 0/1."""
         open_command = (self.open_logit > 0).to(self.position.dtype).unsqueeze(-1)
         return torch.cat([self.position, self.quaternion, open_command], dim=-1)
+
+    def unflatten(self, lead: torch.Size) -> "KeyframePrediction":
+        """(M, ...) -> (*lead, ...) where M is the product of `lead`, e.g. (B*T, 3) -> (B, T, 3)."""
+        return KeyframePrediction(
+            **{f.name: getattr(self, f.name).unflatten(0, lead) for f in fields(KeyframePrediction)}
+        )
 
 
 @dataclass
 class EncodedSteps:
     tokens: Tensor  # (B, T, N, D) with N = C * grid cells + 1 gripper token; no step embedding yet
-    skips: list[Tensor]  # encoder features, each (B * T * C, 16, h, w)
+    encoded: Tensor  # (B, T) bool: the steps that went through the encoder (the others' patch features are 0)
+    skips: list[Tensor]  # encoder features of the encoded steps in (b, t) order, each (M * C, 16, h, w)
 
 
 class HiveformerModel(nn.Module):
@@ -448,38 +514,47 @@ class HiveformerModel(nn.Module):
     def tokens_per_step(self) -> int:
         return self.num_cameras * self.grid[0] * self.grid[1] + 1
 
-    def encode_steps(self, obs: KeyframeObservations) -> EncodedSteps:
-        """Per-step tokens, independent of every other step (so they can be cached during rollouts)."""
+    def encode_steps(self, obs: KeyframeObservations, encode: Tensor) -> EncodedSteps:
+        """Per-step tokens, independent of every other step (so they can be cached during rollouts).
+
+        Only the steps where `encode` (B, T) is True go through the encoder; the others (history padding,
+        which no step attends to) keep zero patch features.
+        """
         batch, steps, cameras, _, height, width = obs.rgb.shape
         mark = gripper_mark(
-            obs.gripper[:, :, None, :3].expand(-1, -1, cameras, -1),
-            obs.calibration,
+            take_steps(obs.gripper, encode)[:, None, :3].expand(-1, cameras, -1),
+            take_steps(obs.calibration, encode),
             height,
             width,
             self.config.gripper_mark_sigma_px,
-        )
-        images = torch.cat([obs.rgb * 2 - 1, obs.points, mark], dim=3)  # (B, T, C, 7, H, W)
-        skips = self.encoder(images.flatten(0, 2))
-        bottleneck = skips[-1]  # (B*T*C, 16, h, w)
+        )  # (M, C, 1, H, W)
+        points = take_steps(obs.points, encode)  # (M, C, 3, H, W), already 0 where there is no depth
+        # Built channels-last, (M, C, H, W, 7), and viewed as (M*C, 7, H, W): oneDNN's convolutions with
+        # few channels run much faster on that layout than on NCHW (which they reorder on every call),
+        # and every encoder and decoder feature map inherits it.
+        channels = [take_steps(obs.rgb, encode) * 2 - 1, points, mark]
+        images = torch.cat([x.movedim(-3, -1) for x in channels], dim=-1).flatten(0, 1).permute(0, 3, 1, 2)
+        skips = self.encoder(images)
+        bottleneck = skips[-1]  # (M*C, 16, h, w)
 
-        valid = obs.valid_pixels.flatten(0, 2).unsqueeze(1).to(obs.points.dtype)  # (B*T*C, 1, H, W)
-        point_sum = F.avg_pool2d(obs.points.flatten(0, 2) * valid, ENCODER_STRIDE)
+        valid = take_steps(obs.valid_pixels, encode).flatten(0, 1).unsqueeze(1).to(points.dtype)
+        point_sum = F.avg_pool2d(points.flatten(0, 1), ENCODER_STRIDE)
         valid_fraction = F.avg_pool2d(valid, ENCODER_STRIDE)
-        patch_xyz = point_sum / valid_fraction.clamp_min(1e-6)  # (B*T*C, 3, h, w): mean xyz of the patch
+        # (M*C, 3, h, w): mean xyz of the patch's valid points
+        patch_xyz = point_sum / valid_fraction.clamp_min(1e-6)
 
-        patch_features = (
-            torch.cat([bottleneck, patch_xyz], dim=1).flatten(2).transpose(1, 2)
-        )  # (B*T*C, h*w, 19)
-        patch_tokens = self.patch_to_token(patch_features)
+        patch_features = torch.cat([bottleneck, patch_xyz], dim=1).flatten(2).transpose(1, 2)  # (M*C, hw, 19)
+        patch_tokens = self.patch_to_token(patch_features).unflatten(0, (-1, cameras))  # (M, C, h*w, D)
+        visual = patch_tokens.new_zeros(batch, steps, *patch_tokens.shape[1:])  # (B, T, C, h*w, D)
+        visual = visual.index_put((encode,), patch_tokens)
         if self.config.use_position_embeddings:
             rows = self.patch_row_embedding.weight[:, None, :].expand(-1, self.grid[1], -1)
             cols = self.patch_col_embedding.weight[None, :, :].expand(self.grid[0], -1, -1)
-            patch_tokens = patch_tokens + (rows + cols).flatten(0, 1)
-        patch_tokens = patch_tokens.view(batch, steps, cameras, -1, self.config.hidden_dim)
-        patch_tokens = patch_tokens + self.source_embedding.weight[:cameras, None, :]
-        gripper_token = self.gripper_to_token(obs.gripper) + self.source_embedding.weight[cameras]
-        tokens = torch.cat([patch_tokens.flatten(2, 3), gripper_token.unsqueeze(2)], dim=2)
-        return EncodedSteps(tokens=tokens, skips=skips)
+            visual = visual + (rows + cols).flatten(0, 1)
+        visual = visual + self.source_embedding.weight[:cameras, None, :]
+        gripper_token = self.gripper_to_token(obs.gripper) + self.source_embedding.weight[cameras]  # (B,T,D)
+        tokens = torch.cat([visual.flatten(2, 3), gripper_token.unsqueeze(2)], dim=2)  # (B, T, N, D)
+        return EncodedSteps(tokens=tokens, encoded=encode, skips=skips)
 
     def contextualise(
         self,
@@ -494,76 +569,91 @@ class HiveformerModel(nn.Module):
         With last_step_only, the last layer computes only the newest step's outputs -> (B, 1, N, D): the
         same values (earlier steps never see later ones), at a fraction of the cost during rollouts.
         """
-        batch, steps, per_step, dim = tokens.shape
+        steps, per_step = tokens.shape[1:3]
         # Steps are numbered among the window's real keyframes, so a training window that starts before
         # the episode and a rollout at the same keyframe give each step the same embedding.
         ordinal = (step_valid.long().cumsum(1) - 1).clamp_min(0)
-        x = (tokens + self.step_embedding(ordinal).unsqueeze(2)).reshape(batch, steps * per_step, dim)
+        x = tokens + self.step_embedding(ordinal).unsqueeze(2)
         instruction_tokens = self.instruction_to_token(instruction)
 
-        step_of_token = torch.arange(steps, device=tokens.device).repeat_interleave(per_step)
-        if self.config.use_history:
-            earlier_or_same = step_of_token[None, :] <= step_of_token[:, None]
-        else:
-            earlier_or_same = step_of_token[None, :] == step_of_token[:, None]
-        key_step_valid = step_valid[:, step_of_token]  # (B, S)
-        history_allowed = earlier_or_same[None] & key_step_valid[:, None, :]  # (B, S, S)
-        instruction_allowed = instruction_mask[:, None, :].expand(-1, x.shape[1], -1)  # (B, S, L)
-        cross_allowed = torch.cat([instruction_allowed, history_allowed], dim=2)
-        same_step = (step_of_token[None, :] == step_of_token[:, None]).expand(batch, -1, -1)
-
-        for layer in self.layers[:-1]:
-            x = layer(x, instruction_tokens, cross_allowed, same_step)
-        if not last_step_only:
-            return self.layers[-1](x, instruction_tokens, cross_allowed, same_step).view(
-                batch, steps, per_step, dim
+        def mask(query_steps: slice) -> Tensor | None:
+            return block_causal_mask(
+                step_valid, instruction_mask, per_step, self.config.use_history, query_steps
             )
-        newest = slice(x.shape[1] - per_step, x.shape[1])
-        x = self.layers[-1](
-            x[:, newest],
-            instruction_tokens,
-            cross_allowed[:, newest],
-            same_step[:, newest, newest],
-            history=x[:, : newest.start],
-        )
-        return x.view(batch, 1, per_step, dim)
+
+        if not last_step_only:
+            every_step = mask(slice(None))  # built once for all layers
+            for layer in self.layers:
+                x = layer(x, instruction_tokens, every_step)
+            return x
+        if len(self.layers) > 1:
+            every_step = mask(slice(None))
+            for layer in self.layers[:-1]:
+                x = layer(x, instruction_tokens, every_step)
+        return self.layers[-1](
+            x[:, -1:], instruction_tokens, mask(slice(steps - 1, steps)), history=x[:, :-1].flatten(1, 2)
+        )  # (B, 1, N, D)
 
     def decode_steps(
-        self, context: Tensor, encoded: EncodedSteps, obs: KeyframeObservations
+        self, context: Tensor, encoded: EncodedSteps, obs: KeyframeObservations, decode: Tensor
     ) -> KeyframePrediction:
-        """Heads for every step of `context` (B, T, N, D); `encoded` and `obs` hold the same T steps."""
-        batch, steps, _, dim = context.shape
+        """Heads for the steps where `decode` (B, T) is True (a subset of the encoded ones) -> (M, ...).
+
+        `context` (B, T, N, D) and `obs` hold the same T steps as `encoded`.
+        """
+        dim = context.shape[-1]
         cameras = self.num_cameras
         grid_h, grid_w = self.grid
+        decoded_among_encoded = decode[encoded.encoded]  # (M_encoded,) bool
+        skips = [
+            take_steps(skip.unflatten(0, (-1, cameras)), decoded_among_encoded, 1).flatten(0, 1)
+            for skip in encoded.skips
+        ]  # each (M*C, 16, h, w)
+        step_context = take_steps(context, decode)  # (M, N, D)
         camera_grids = (
-            context[:, :, :-1].reshape(batch * steps * cameras, grid_h, grid_w, dim).permute(0, 3, 1, 2)
-        )  # (B*T*C, D, h, w)
-        logits = self.decoder(camera_grids, encoded.skips)  # (B*T*C, H, W)
+            step_context[:, :-1].reshape(-1, grid_h, grid_w, dim).permute(0, 3, 1, 2)
+        )  # (M*C, D, h, w)
+        logits = self.decoder(camera_grids, skips)  # (M*C, H, W)
         height, width = logits.shape[-2:]
-        logits = logits.view(batch, steps, cameras * height * width) / self.config.attention_temperature
-        valid = obs.valid_pixels.reshape(batch, steps, -1)
+        logits = logits.view(-1, cameras * height * width) / self.config.attention_temperature
+        valid = take_steps(obs.valid_pixels, decode).view(logits.shape)  # (M, C*H*W)
         # Pixels without depth have no 3D point to point at.
         logits = logits.masked_fill(~valid, torch.finfo(logits.dtype).min)
-        attention = logits.softmax(-1)  # (B, T, C*H*W)
-        points = obs.points.permute(0, 1, 2, 4, 5, 3).reshape(batch, steps, -1, 3)
-        attended_point = torch.einsum("btp,btpk->btk", attention, points)
+        attention = logits.softmax(-1).view(-1, cameras, height, width)  # (M, C, H, W)
+        attended_point = torch.einsum("mchw,mckhw->mk", attention, take_steps(obs.points, decode))  # (M, 3)
 
-        pooled = self.rotation_gripper_cnn(camera_grids).amax(dim=(-2, -1))  # (B*T*C, D)
-        pooled = pooled.view(batch, steps, cameras, dim).amax(dim=2)
-        head = self.rotation_gripper_head(torch.cat([pooled, context[:, :, -1]], dim=-1))  # (B, T, 8)
+        pooled = self.rotation_gripper_cnn(camera_grids).amax(dim=(-2, -1))  # (M*C, D)
+        pooled = pooled.view(-1, cameras, dim).amax(dim=1)  # (M, D)
+        head = self.rotation_gripper_head(torch.cat([pooled, step_context[:, -1]], dim=-1))  # (M, 8)
         return KeyframePrediction(
-            position=attended_point + head[..., :3],
-            quaternion=F.normalize(head[..., 3:7], dim=-1),
-            open_logit=head[..., 7],
-            pixel_attention=attention.view(batch, steps, cameras, height, width),
+            position=attended_point + head[:, :3],
+            quaternion=F.normalize(head[:, 3:7], dim=-1),
+            open_logit=head[:, 7],
+            pixel_attention=attention,
         )
 
     def forward(
-        self, obs: KeyframeObservations, instruction: Tensor, instruction_mask: Tensor
+        self,
+        obs: KeyframeObservations,
+        instruction: Tensor,
+        instruction_mask: Tensor,
+        decode: Tensor | None = None,
     ) -> KeyframePrediction:
-        encoded = self.encode_steps(obs)
+        """Predictions for every step -> (B, T, ...), or for the steps where `decode` (B, T) -> (M, ...).
+
+        The encoder runs on the real steps (which the decoded ones attend to) and the decoded ones only:
+        padding steps are masked out of attention, so encoding them would change nothing. The heads run on
+        the decoded steps only, as the authors' code runs them on the unpadded steps only.
+        """
+        decode_all = decode is None
+        if decode_all:
+            decode = torch.ones_like(obs.step_valid)
+        encoded = self.encode_steps(obs, obs.step_valid | decode)
         context = self.contextualise(encoded.tokens, obs.step_valid, instruction, instruction_mask)
-        return self.decode_steps(context, encoded, obs)
+        prediction = self.decode_steps(context, encoded, obs, decode)
+        if decode_all:
+            prediction = prediction.unflatten(obs.step_valid.shape)
+        return prediction
 
 
 # --- Policy ---------------------------------------------------------------------------------------
@@ -626,31 +716,30 @@ class HiveformerPolicy(PreTrainedPolicy):
 
     def forward(self, batch: dict) -> tuple[Tensor, dict]:
         """Teacher-forced losses over every non-padded step of the history window."""
-        prediction = self.predict_keyframes(batch)
         target = batch[ACTION]  # (B, T, 8)
         if target.dim() == 2:
             target = target.unsqueeze(1)
-        supervised = supervised_steps(batch, target)
-        weight = supervised.to(target.dtype)
-        count = weight.sum().clamp_min(1.0)
+        supervised = supervised_steps(batch, target)  # (B, T)
+        obs = keyframe_observations(batch, self.config)
+        instruction, instruction_mask = self._encode_instructions(obs.instructions, obs.rgb.device)
+        # The heads run on the supervised steps only: (M, ...) predictions for M supervised steps.
+        prediction = self.model(obs, instruction, instruction_mask, decode=supervised)
+        target = target[supervised]  # (M, 8)
+        count = max(target.shape[0], 1)
 
-        position_loss = (((prediction.position - target[..., :3]) ** 2).sum(-1) * weight).sum() / count
-        rotation_loss = (quaternion_loss(prediction.quaternion, target[..., 3:7]) * weight).sum() / count
+        position_loss = ((prediction.position - target[:, :3]) ** 2).sum() / count
+        rotation_loss = quaternion_loss(prediction.quaternion, target[:, 3:7]).sum() / count
         gripper_loss = (
-            F.binary_cross_entropy_with_logits(prediction.open_logit, target[..., 7], reduction="none")
-            * weight
-        ).sum() / count
+            F.binary_cross_entropy_with_logits(prediction.open_logit, target[:, 7], reduction="sum") / count
+        )
         loss = (
             self.config.position_loss_weight * position_loss
             + self.config.rotation_loss_weight * rotation_loss
             + self.config.gripper_loss_weight * gripper_loss
         )
-        return loss, {
-            "position_loss": position_loss.item(),
-            "rotation_loss": rotation_loss.item(),
-            "gripper_loss": gripper_loss.item(),
-            "total_loss": loss.item(),
-        }
+        names = ("position_loss", "rotation_loss", "gripper_loss", "total_loss")
+        values = torch.stack([position_loss, rotation_loss, gripper_loss, loss]).detach().tolist()  # one sync
+        return loss, dict(zip(names, values, strict=True))
 
     @torch.no_grad()
     def predict_action_chunk(self, batch: dict) -> Tensor:
@@ -658,16 +747,18 @@ class HiveformerPolicy(PreTrainedPolicy):
         self.eval()
         obs = keyframe_observations(batch, self.config)
         current = _last_step(obs)
-        encoded = self.model.encode_steps(current)
+        everything = torch.ones_like(current.step_valid)  # (B, 1)
+        # Only the newest step is encoded; earlier steps' tokens come from the rollout history.
+        encoded = self.model.encode_steps(current, everything)
         self._history.append(encoded.tokens[:, 0])
         window = torch.stack(list(self._history), dim=1)  # (B, T', N, D)
         step_valid = torch.ones(window.shape[:2], dtype=torch.bool, device=window.device)
         instruction, instruction_mask = self._encode_instructions(obs.instructions, window.device)
         context = self.model.contextualise(
             window, step_valid, instruction, instruction_mask, last_step_only=True
-        )
-        prediction = self.model.decode_steps(context, encoded, current)
-        return prediction.action()
+        )  # (B, 1, N, D)
+        prediction = self.model.decode_steps(context, encoded, current, everything)  # (B, ...)
+        return prediction.action().unsqueeze(1)
 
     @torch.no_grad()
     def select_action(self, batch: dict) -> Tensor:
