@@ -198,7 +198,7 @@ def survey(paths: list[Path], options: ConvertOptions) -> _Survey:
     invalid: list[tuple[Path, str]] = []
     for path in tqdm(paths, desc="checking recordings", unit="file", disable=not options.progress):
         try:
-            episode = read_episode(path)
+            episode = read_episode(path, images=False)  # images are decoded once, when written
             _check_episode(episode, path, options.granularity)
         except RecordingError as exc:
             if not options.skip_invalid:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import os
 from collections.abc import Iterator
 from pathlib import Path
@@ -34,19 +35,23 @@ def iter_episode_paths(folder: str | os.PathLike) -> list[Path]:
     return sorted(p for p in Path(folder).glob("*.mcap") if not p.name.startswith("."))
 
 
-def read_episode(path: str | os.PathLike) -> Episode:
-    """Read a whole episode; raises ``RecordingError`` naming the file and the problem."""
+def read_episode(path: str | os.PathLike, images: bool = True) -> Episode:
+    """Read a whole episode; raises ``RecordingError`` naming the file and the problem.
+
+    With ``images=False`` the camera streams are checked for presence but not decoded (frames have
+    no ``cameras``): a fast read of everything else, e.g. to plan a conversion.
+    """
     path = Path(path)
     try:
-        messages = list(_iter_messages(path))
+        messages = list(_iter_messages(path, images))
     except RecordingError:
         raise
     except Exception as exc:  # mcap raises many types for damaged files; all mean the same here
         raise RecordingError(f"{path}: corrupt or truncated recording ({type(exc).__name__}: {exc})") from exc
-    return _assemble(path, messages)
+    return _assemble(path, messages, images)
 
 
-def _iter_messages(path: Path) -> Iterator[tuple[str, int, object]]:
+def _iter_messages(path: Path, images: bool = True) -> Iterator[tuple[str, int, object]]:
     with open(path, "rb") as stream:
         profile = NonSeekingReader(stream).get_header().profile  # a non-seeking reader answers one query
         if profile != schema.PROFILE:
@@ -55,11 +60,18 @@ def _iter_messages(path: Path) -> Iterator[tuple[str, int, object]]:
         reader = NonSeekingReader(
             stream, validate_crcs=True, decoder_factories=[ProtobufDecoderFactory(), schema.JsonDecoderFactory()]
         )
-        for _schema, channel, message, decoded in reader.iter_decoded_messages(log_time_order=False):
-            yield channel.topic, message.log_time, decoded
+        if images:
+            for _schema, channel, message, decoded in reader.iter_decoded_messages(log_time_order=False):
+                yield channel.topic, message.log_time, decoded
+            return
+        for _schema, channel, message in reader.iter_messages(log_time_order=False):
+            if channel.message_encoding == "json":
+                yield channel.topic, message.log_time, json.loads(message.data)
+            elif channel.topic.startswith("/cameras/"):
+                yield channel.topic, message.log_time, None  # present, not decoded
 
 
-def _assemble(path: Path, messages: list[tuple[str, int, object]]) -> Episode:
+def _assemble(path: Path, messages: list[tuple[str, int, object]], images: bool = True) -> Episode:
     info_payload = result = None
     keyframes: list[Keyframe] = []
     states: dict[int, dict] = {}
@@ -103,7 +115,8 @@ def _assemble(path: Path, messages: list[tuple[str, int, object]]) -> Episode:
     for t in sorted(states):
         state = states[t]
         streams = cameras.get(t, {})
-        missing = [c for c in info.cameras if set(streams.get(c, {})) != {"rgb", "depth", "segmentation", "calibration", "tf"}]
+        expected = {"rgb", "depth", "segmentation", "calibration", "tf"} if images else {"rgb", "depth", "segmentation", "calibration"}
+        missing = [c for c in info.cameras if set(streams.get(c, {})) != expected]
         if missing:
             raise RecordingError(f"{path}: frame at {t} ns lacks camera streams for {', '.join(missing)}")
         frames.append(Frame(
@@ -117,7 +130,7 @@ def _assemble(path: Path, messages: list[tuple[str, int, object]]) -> Episode:
                 gripper_open=state["gripper_open"],
                 finger_width=state["finger_width"],
             ),
-            cameras={c: _camera_observation(streams[c]) for c in info.cameras},
+            cameras={c: _camera_observation(streams[c]) for c in info.cameras} if images else {},
         ))
     keyframes.sort(key=lambda k: k.index)
     return Episode(info=info, keyframes=keyframes, frames=frames)
