@@ -76,6 +76,21 @@ def bench_expert_success(task_name: str, split: str, episodes: int) -> dict:
     return _timing(outcomes)
 
 
+def bench_suite_experts(suite: str, episodes: int, tasks: list[str] | None = None) -> dict:
+    """Per task of a suite: expert success, keyframes and seconds per episode (train split, no
+    rendering, two worker processes; seconds are per episode in its own process)."""
+    from demo_factory.suites import suite_tasks
+
+    figures = {}
+    for task in tasks or suite_tasks(suite):
+        requests = job_requests(task, "train", episodes, base_seed=0)
+        outcomes = list(tqdm(run_requests(requests, None, workers=2), total=episodes, desc=f"{task} expert"))
+        figures[task] = {key: value for key, value in _timing(outcomes).items()
+                         if key in ("episodes", "kept", "success_rate", "failure_reasons", "seconds_per_episode_mean",
+                                    "keyframes_per_episode_mean", "planner_attempts_histogram")}
+    return figures
+
+
 def bench_planner(queries: int, seed: int = 0) -> dict:
     """Random feasible queries in a tabletop scene (table + four cubes): time per transition and
     success within 10 seeded attempts."""
@@ -222,6 +237,7 @@ SECTIONS = {
     "expert_success": lambda c: {
         f"{task}/{split}": bench_expert_success(task, split, c["success_episodes"])
         for task in ("push_buttons", "tower") for split in ("train", "test")},
+    "ten_tasks_expert": lambda c: bench_suite_experts("ten_tasks", c["success_episodes"]),
     "planner": lambda c: bench_planner(c["planner_queries"]),
     "camera_render": lambda c: bench_render(c["render_frames"]),
     "conversion": lambda c: bench_conversion(c["conversion_episodes"]),
