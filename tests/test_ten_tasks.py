@@ -145,7 +145,9 @@ def test_suite_generates_one_folder_per_task_and_converts_to_one_multi_task_data
     args = ["generate", "--suite", "ten_tasks", "--episodes-per-task", "1", "--image-size", "32", "--workers", "2",
             "--out", str(raw)]
     assert main(args) == 0
-    assert sorted(p.name for p in raw.iterdir()) == sorted(TEN)
+    assert sorted(p.name for p in raw.iterdir()) == sorted([*TEN, "report.json", "report.md", "report.png"])
+    report = json.loads((raw / "report.json").read_text())["jobs"]
+    assert sorted(r["task"] for r in report) == sorted(TEN) and all(r["kept"] == 1 for r in report)
     for name in TEN:
         assert len(list((raw / name).glob("*.mcap"))) == 1
         assert json.loads((raw / name / "manifest.json").read_text())["jobs"][f"{name}/train"]["episodes"] == 1
