@@ -18,7 +18,9 @@ from demo_factory.tasks.base import KeyframeTarget
 
 JOINT_SPEED = 1.2  # rad/s, the fastest joint on a planned path
 CARTESIAN_SPEED = 0.12  # m/s along straight-line moves
+CARTESIAN_TURN_SPEED = 1.0  # rad/s when the hand turns in place
 CARTESIAN_STEP = 0.005  # metres between IK waypoints on a straight line
+CARTESIAN_TURN_STEP = np.radians(3)  # radians between IK waypoints when the hand turns
 MAX_JOINT_JUMP = 0.25  # rad between consecutive straight-line IK solutions (else: not a straight move)
 SETTLE_STEPS = 120
 CONTACT_MOVE_MAX = 0.15  # metres: a predicted move that starts or ends in contact goes straight
@@ -93,8 +95,9 @@ class KeyframeExecutor:
 
     def _cartesian(self, pose: np.ndarray) -> TransitionOutcome:
         start_pose = self.world.gripper_pose()
-        distance = float(np.linalg.norm(pose[:3] - start_pose[:3]))
-        n = max(1, int(np.ceil(distance / CARTESIAN_STEP)))
+        distance, rotation = pose_error(start_pose, pose)
+        # Waypoints every 5 mm of travel and every 3 degrees of turning (a wrist turn in place).
+        n = max(1, int(np.ceil(distance / CARTESIAN_STEP)), int(np.ceil(rotation / CARTESIAN_TURN_STEP)))
         q = self.world.joint_positions()
         waypoints = [q]
         for waypoint_pose in slerp_poses(start_pose, pose, n):
@@ -102,7 +105,8 @@ class KeyframeExecutor:
             if q_next is None or np.max(np.abs(q_next - waypoints[-1])) > MAX_JOINT_JUMP:
                 return TransitionOutcome(False, "cartesian")
             waypoints.append(q_next)
-        self._follow(waypoints, speed=None, segment_seconds=max(distance / n / CARTESIAN_SPEED, TIME_STEP))
+        seconds = max(distance / CARTESIAN_SPEED, rotation / CARTESIAN_TURN_SPEED)
+        self._follow(waypoints, speed=None, segment_seconds=max(seconds / n, TIME_STEP))
         return TransitionOutcome(True)
 
     def _follow(self, waypoints, speed: float | None, segment_seconds: float | None = None) -> None:

@@ -15,6 +15,7 @@ from demo_factory.tasks.stack_wine import StackWine
 from demo_factory.tasks.take_money_out_safe import TakeMoneyOutSafe
 from demo_factory.tasks.take_umbrella_out_of_umbrella_stand import TakeUmbrellaOutOfUmbrellaStand
 from demo_factory.tasks.tower import Tower
+from demo_factory.tasks.turn_tap import TurnTap
 
 # The multi-variation tasks come first: error messages list the accepted names in this order.
 TASKS: dict[str, type[Task]] = {
@@ -30,6 +31,7 @@ TASKS: dict[str, type[Task]] = {
     PutMoneyInSafe.name: PutMoneyInSafe,
     TakeMoneyOutSafe.name: TakeMoneyOutSafe,
     TakeUmbrellaOutOfUmbrellaStand.name: TakeUmbrellaOutOfUmbrellaStand,
+    TurnTap.name: TurnTap,  # beyond the paper's ten: the screw category
 }
 
 # Tasks whose variations are ordered colour sequences with unseen test variations (HiveFormer's
