@@ -13,6 +13,7 @@ from demo_factory.tasks.variations import Variation
 PROTRUDES = HAND_CLEARANCE + GRIP_FROM_REAR  # the note's rear end sticks out of the safe this far
 PULL = 0.16  # straight pull out of the compartment
 TABLE_REGION = ((0.3, 0.36), (-0.2, 0.2))  # where the grasp frame puts the note down
+SAFE_CLEARANCE = 0.03
 OUT_OF_SAFE = 0.08  # the note's centre must end this far in front of the safe
 
 
@@ -40,6 +41,9 @@ class TakeMoneyOutSafe(Task):
         centre = (self.safe.front - PROTRUDES + NOTE_HALF[0], self.safe.y + rng.uniform(-0.04, 0.04))
         self.note = add_note(world, centre, top + NOTE_HALF[2])
         (x0, x1), (y0, y1) = TABLE_REGION
+        # The note reaches 2 * NOTE_HALF[0] - GRIP_FROM_REAR ahead of the grasp frame: put it down
+        # with its far end clear of the safe's front, so the carried note never touches the safe.
+        x1 = min(x1, self.safe.front - (2 * NOTE_HALF[0] - GRIP_FROM_REAR) - SAFE_CLEARANCE)
         self.put_down = np.array([rng.uniform(x0, x1), rng.uniform(y0, y1), NOTE_HALF[2] + 0.006])
 
     def expert(self, world) -> list[KeyframeTarget]:
