@@ -107,3 +107,28 @@ def test_ray_executor_gives_the_same_files_as_the_process_pool(tmp_path):
     ray = list(run_requests(requests, tmp_path / "ray", workers=2, executor="ray"))
     assert [o.kept for o in ray] == [o.kept for o in pool] == [True] * 3
     assert files(tmp_path / "ray") == files(tmp_path / "pool")
+
+
+def test_disk_full_stops_with_a_clear_message_and_keeps_finished_episodes(tmp_path, monkeypatch, capsys):
+    import errno
+
+    from demo_factory.cli import main
+    from demo_factory.record import read_episode
+    from demo_factory.record.writer import EpisodeWriter
+
+    original_close, calls = EpisodeWriter.close, []
+
+    def close_until_the_disk_fills(self, *args, **kwargs):
+        calls.append(self.path)
+        if len(calls) == 2:
+            raise OSError(errno.ENOSPC, "No space left on device")
+        return original_close(self, *args, **kwargs)
+
+    monkeypatch.setattr(EpisodeWriter, "close", close_until_the_disk_fills)
+    code = main(["generate", "--task", "push_buttons", "--episodes", "3", "--workers", "1", *SMALL, "--out", str(tmp_path)])
+    assert code == 1
+    message = capsys.readouterr().err.strip().splitlines()[-1]
+    assert "No space left on device" in message and "the 1 finished episode are complete and valid" in message
+    recordings = list(tmp_path.glob("*.mcap"))
+    assert len(recordings) == 1 and read_episode(recordings[0]).info.success
+    assert not list(tmp_path.glob(".*.partial"))  # the interrupted episode left nothing behind
