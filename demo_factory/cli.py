@@ -185,9 +185,9 @@ def generate_job(args) -> int:
     except OSError as exc:
         bar.close()
         kept = sum(o.kept for o in outcomes)
-        print(f"demo-factory generate: error: writing to {out} failed ({exc.strerror}); the {kept} finished "
-              f"episode{'' if kept == 1 else 's'} are complete and valid; fix the cause and re-run the same command "
-              "to resume", file=sys.stderr)
+        print(f"demo-factory generate: error: writing to {out} failed ({exc.strerror}); episodes finished "
+              f"before it: {kept}, all complete and valid; fix the cause and re-run the same command to resume",
+              file=sys.stderr)
         return 1
     bar.close()
     summary = generation_summary(args, outcomes, time.perf_counter() - began)

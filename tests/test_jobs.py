@@ -128,7 +128,7 @@ def test_disk_full_stops_with_a_clear_message_and_keeps_finished_episodes(tmp_pa
     code = main(["generate", "--task", "push_buttons", "--episodes", "3", "--workers", "1", *SMALL, "--out", str(tmp_path)])
     assert code == 1
     message = capsys.readouterr().err.strip().splitlines()[-1]
-    assert "No space left on device" in message and "the 1 finished episode are complete and valid" in message
+    assert "No space left on device" in message and "episodes finished before it: 1, all complete and valid" in message
     recordings = list(tmp_path.glob("*.mcap"))
     assert len(recordings) == 1 and read_episode(recordings[0]).info.success
     assert not list(tmp_path.glob(".*.partial"))  # the interrupted episode left nothing behind
