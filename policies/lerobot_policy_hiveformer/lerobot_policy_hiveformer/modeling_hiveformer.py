@@ -8,6 +8,7 @@ and with the tokens of earlier steps; a UNet decoder scores every pixel of every
 position is the softmax-weighted point cloud plus an offset; a small CNN predicts rotation and gripper.
 """
 
+from abc import ABC, abstractmethod
 from collections import deque
 from dataclasses import dataclass, fields
 from pathlib import Path
@@ -179,7 +180,7 @@ CLIP_VOCAB_SIZE = 49408
 TINY_CLIP_SEED = 0
 
 
-class InstructionEncoder:
+class InstructionEncoder(ABC):
     """Instruction strings -> per-token features, computed once per distinct string and cached.
 
     Not an nn.Module on purpose: it is frozen, and its weights do not belong in the policy's checkpoint.
@@ -190,9 +191,9 @@ class InstructionEncoder:
     def __init__(self):
         self._cache: dict[str, Tensor] = {}
 
+    @abstractmethod
     def _encode_new(self, instructions: list[str]) -> list[Tensor]:
         """Features (L_i, feature_dim) of each instruction."""
-        raise NotImplementedError
 
     def encode(self, instructions: list[str]) -> tuple[Tensor, Tensor]:
         """(B, L, feature_dim) features, padded with zeros, and (B, L) bool mask of real tokens (on CPU)."""
