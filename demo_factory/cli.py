@@ -108,6 +108,9 @@ def cmd_tasks(args) -> int:
     widths = [max(len(r[i]) for r in rows) for i in range(5)]
     for row in rows:
         print("  ".join(cell.ljust(w) for cell, w in zip(row, widths)) + "  " + row[5])
+    print("\nvariation ids and splits:")
+    for name in TASKS:
+        print(f"  {name.ljust(widths[0])}  {get_task(name).variation_scheme}")
     for suite, members in SUITES.items():
         print(f"\nsuite {suite}: {', '.join(members)}")
     return 0
@@ -321,8 +324,9 @@ def build_parser() -> argparse.ArgumentParser:
     gen.add_argument("--variation", action="append", metavar="SEQUENCE_OR_ID",
                      help="generate this variation only: a colour sequence such as maroon,navy,teal or a variation "
                           "id (repeatable)")
-    gen.add_argument("--variations-from", metavar="JSONL",
-                     help="generate every distinct variation named in a human-instruction file (converter format)")
+    gen.add_argument("--variations-from", metavar="FILE",
+                     help="generate every distinct variation of --task named in a human-instruction file: the "
+                          "HiveFormer authors' annotations.json as it is, or demo-factory JSONL")
     gen.add_argument("--episodes-per-task", type=positive_int,
                      help="with --suite: episodes of each task (default: --episodes)")
     gen.add_argument("--episodes-per-variation", type=positive_int,

@@ -204,7 +204,8 @@ def test_card_lists_splits_features_and_how_to_train(converted):
     assert card.startswith("---\nlicense: apache-2.0\ntask_categories:\n- robotics\n")
     assert "- LeRobot" in card and "path: test_unseen_human/data/*/*.parquet" in card
     assert "| `test_unseen_human` | `me/push_buttons_test_unseen_human` | 4 |" in card
-    assert "`observation.calibration.wrist`" in card and "written by the project's authors" in card
+    assert "`observation.calibration.wrist`" in card
+    assert "sentences from `human.jsonl`, a file supplied at conversion (`--human-instructions`): 4 sentences" in card
     assert "lerobot-train --policy.type=act" in card and "--policy.pretrained_backbone_weights=null" in card
     assert "guhur2022hiveformer" in card and "james2020rlbench" in card and "cadene2024lerobot" in card
     assert "planned transition: mean 2.00, max 3" in card
@@ -265,8 +266,8 @@ def test_overwrite_replaces_and_dense_granularity_uses_dense_frames(tmp_path):
     assert [train_set[i]["keyframe_index"].item() for i in range(2)] == [0, 1]
     assert sorted(k for k in train_set.features if k.startswith("observation.images")) == [
         "observation.images.front", "observation.images.wrist"]
-    human = LeRobotDataset("me/tower_test_unseen_human", root=out / "test_unseen_human")  # the shipped file
-    assert human.num_episodes == 3  # the first test variation has 3 shipped rows
+    human = LeRobotDataset("me/tower_test_unseen_human", root=out / "test_unseen_human")  # the paper's sentences
+    assert human.num_episodes == 1  # the first test variation (100) has one row in annotations.json
 
 
 @pytest.mark.slow

@@ -41,17 +41,15 @@ def test_corruption_handles_spellings_case_and_word_boundaries():
     assert corrupt_instruction("push the navy button") == corrupt_instruction("push the navy button")
 
 
-@pytest.mark.parametrize("task, minimum", [("push_buttons", 60), ("tower", 100)])
-def test_shipped_human_instructions_are_valid_and_name_test_variations(task, minimum):
+@pytest.mark.parametrize("task, count", [("push_buttons", 62), ("tower", 100)])
+def test_shipped_human_instructions_are_the_papers_and_name_test_variations(task, count):
     rows = [r for r in load_human_instructions(shipped_human_instructions(task)) if r.task == task]
-    assert len(rows) >= minimum
+    assert len(rows) == count
     test_ids = {v.id for v in get_task(task).split_variations("test")}
     assert {r.variation_id for r in rows} <= test_ids
-    assert all(r.author and r.language == "en" for r in rows)
+    assert all(r.language == "en" and r.record_id for r in rows)
     texts = [r.instruction.lower() for r in rows]
     assert any("grey" in t for t in texts) and any("gray" in t for t in texts)
-    unseen_verbs = ("tap", "hit") if task == "push_buttons" else ("grab", "build", "make")
-    assert any(t.split()[0] in unseen_verbs for t in texts)
 
 
 def _write(tmp_path, rows):

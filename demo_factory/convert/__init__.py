@@ -1,14 +1,23 @@
 """MCAP episode recordings → LeRobot v3.0 datasets, one per split, with a dataset card."""
 
-from demo_factory.convert.converter import ConvertError, ConvertOptions, ConvertResult, convert
+from demo_factory.convert.converter import (
+    DATASET_FORMAT_VERSION,
+    ConvertError,
+    ConvertOptions,
+    ConvertResult,
+    check_dataset_provenance,
+    convert,
+)
 from demo_factory.convert.features import dataset_features, pack_depth, unpack_depth, world_points
 from demo_factory.convert.splits import SPLITS, split_repo_id
 
 __all__ = [
+    "DATASET_FORMAT_VERSION",
     "SPLITS",
     "ConvertError",
     "ConvertOptions",
     "ConvertResult",
+    "check_dataset_provenance",
     "convert",
     "dataset_features",
     "pack_depth",

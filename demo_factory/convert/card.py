@@ -5,6 +5,7 @@ from __future__ import annotations
 import re
 import shlex
 import statistics
+from collections import Counter
 from pathlib import Path
 from string import Template
 from typing import TYPE_CHECKING
@@ -15,7 +16,8 @@ import numpy as np
 from demo_factory.convert.features import ACTION_NAMES, CALIBRATION_NAMES, KEYFRAME_FPS, STATE_NAMES
 from demo_factory.convert.splits import SplitPlan, SourceEpisode
 from demo_factory.convert.usage import act_train_args, act_train_command, load_command
-from demo_factory.instructions import COLOUR_SYNONYMS
+from demo_factory.instructions import COLOUR_SYNONYMS, hiveformer_annotations
+from demo_factory.instructions.human import sentence_rows
 from demo_factory.record import read_episode
 from demo_factory.suites import SUITES
 from demo_factory.tasks import TASKS, get_task
@@ -109,6 +111,14 @@ def _feature_rows(cameras: list[str], image_size: tuple[int, int]) -> str:
 
 def _variation_text(task) -> str:
     """How variations and the seen / unseen splits work, for one task or (``None``) a suite."""
+    if task is not None and task.paper_numbering is not None:
+        n = task.paper_numbering
+        return (f"A *variation* is an ordered {task.variation_kind} sequence. Variation ids are the HiveFormer paper's: "
+                f"the task numbers its variations exactly as the authors' RLBench fork numbers `{n.fork_task}`, so "
+                f"variation *i* here is variation *i* there (`demo-factory tasks`: {task.variation_scheme}). As in the "
+                f"paper, **train** (seen) = variations 0-{task.n_train - 1} and **test** (unseen) = variations "
+                f"{task.n_train}-{task.n_train + task.n_test - 1}. Train and val only hold seen variations; every "
+                "`test_unseen_*` split only holds unseen ones. `variation_id` (a feature) is that id.")
     if task is not None and not task.shared_split:
         return (f"A *variation* is an ordered {task.variation_kind} sequence. The task enumerates its variations "
                 f"deterministically and deals them into disjoint **train** (seen) and **test** (unseen) sets of "
@@ -119,6 +129,33 @@ def _variation_text(task) -> str:
             "index in its task's enumeration. Colour tasks deal their variations into disjoint **train** (seen) and "
             "**test** (unseen) sets; tasks with a handful of placement, slot or shelf variations use every variation "
             "in both, so their test episodes differ from training ones only in the scene (a different seed).")
+
+
+def _human_text(result: ConvertResult, task_name: str) -> tuple[str, str]:
+    """Where the human-written instructions come from, how many there are, and their licence."""
+    if result.human_file is None:
+        return "no human-instruction file was given for this task.", ""
+    rows, blank = sentence_rows(result.human_rows or [])
+    per_variation = Counter(Counter(r.variation_id for r in rows).values())
+    spread = ", ".join(f"{n} for {k} variation{'s' * (k != 1)}" for n, k in sorted(per_variation.items()))
+    counts = (f"{len(rows)} sentences for {task_name} covering {sum(per_variation.values())} test variations "
+              f"({spread} per variation)")
+    if blank:
+        counts += (f"; {len(blank)} more row{'s' * (len(blank) != 1)} with an empty sentence (variation "
+                   f"{', '.join(str(r.variation_id) for r in blank)}) cannot instruct an episode and "
+                   f"{'are' if len(blank) > 1 else 'is'} left out")
+    if Path(result.human_file).resolve() == hiveformer_annotations().resolve():
+        return (f"the HiveFormer paper's human-written instructions: `annotations.json` from the authors' repository "
+                f"(github.com/guhur/hiveformer), shipped unchanged with demo-factory; people wrote them for the "
+                f"paper's unseen test variations (ids 100-199). {counts}; sentences kept exactly as written, typos "
+                "included.",
+                "The human-written instructions of `test_unseen_human` are the HiveFormer authors' `annotations.json`, "
+                "MIT licence, Copyright (c) 2022 guhur (the notice ships beside the file in "
+                "`demo_factory/instructions/data/hiveformer/`).")
+    return (f"sentences from `{Path(result.human_file).name}`, a file supplied at conversion "
+            f"(`--human-instructions`): {counts}.",
+            f"The human-written instructions of `test_unseen_human` come from `{Path(result.human_file).name}` "
+            "under that file's own terms.")
 
 
 def render_card(result: ConvertResult, template: Path = TEMPLATE) -> str:
@@ -153,6 +190,7 @@ def render_card(result: ConvertResult, template: Path = TEMPLATE) -> str:
                                   for t in members))
     else:
         task_text = result.task
+    human_text, human_licence = _human_text(result, result.task)
     assignment = result.human_assignment
     human_note = ""
     if assignment is not None:
@@ -178,7 +216,8 @@ def render_card(result: ConvertResult, template: Path = TEMPLATE) -> str:
         "split_rows": split_rows,
         "skipped_splits": skipped,
         "corruption_table": ", ".join(f"{k} → {v}" for k, v in COLOUR_SYNONYMS.items()) + " (grey → ash as for gray)",
-        "human_file": Path(result.human_file).name if result.human_file else "(none)",
+        "human_text": human_text,
+        "human_licence": human_licence,
         "human_note": human_note,
         "frame_description": ("one observation per keyframe (keyframe 0 = the initial state)"
                               if result.granularity == "keyframe" else "the dense frames at their recorded rate"),

@@ -34,8 +34,9 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     parser.add_argument("--val-ratio", type=float, default=0.1,
                         help="fraction of train-variation episodes held out for val (default 0.1)")
     parser.add_argument("--human-instructions", type=Path, metavar="FILE",
-                        help="JSONL file of human-written instructions for test variations "
-                             "(default: the file shipped with demo_factory for the task)")
+                        help="human-written instructions for test variations: the HiveFormer authors' "
+                             "annotations.json or demo-factory JSONL (default for push_buttons and tower: the "
+                             "paper's annotations.json shipped with demo_factory)")
     parser.add_argument("--task", help="convert only this task's recordings (default: all; several tasks make one "
                                        "multi-task dataset)")
     parser.add_argument("--skip-invalid", action="store_true",

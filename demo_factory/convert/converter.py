@@ -29,10 +29,13 @@ from demo_factory.convert.features import (
 )
 from demo_factory.convert.splits import SourceEpisode, SplitPlan, plan_splits, split_repo_id
 from demo_factory.instructions import HumanInstruction, load_human_instructions, shipped_human_instructions
-from demo_factory.instructions.human import HumanAssignment
+from demo_factory.instructions.human import HumanAssignment, sentence_rows
 from demo_factory.record import Episode, RecordingError, iter_episode_paths, read_episode
 from demo_factory.tasks import TASKS, get_task
 
+# meta/info.json["demo_factory"]["format_version"]: 2 = variation ids numbered as the HiveFormer
+# paper (push_buttons, tower); datasets without it (version 1) used an older numbering.
+DATASET_FORMAT_VERSION = 2
 IMAGE_WRITER_THREADS = 4  # PNG encoding in threads: the writer's bottleneck besides stats
 GENERATION_SUMMARIES = "generation_summary*.json"  # written by `demo-factory generate`, one per job
 MULTI_TASK = "multi_task"  # the dataset's task label when the inputs' tasks form no named suite
@@ -81,6 +84,7 @@ class ConvertResult:
     sources: list[SourceEpisode]
     human_file: Path | None
     human_assignment: HumanAssignment | None
+    human_rows: list[HumanInstruction] | None  # every row of the file for the task, blank ones included
     seconds: float
     frames_written: int
     command: str  # the convert command line that reproduces this output
@@ -313,13 +317,15 @@ def write_split(plan: SplitPlan, root: Path, repo_id: str, survey_: _Survey, gra
                 "episode_seed": planned.source.episode_seed,
                 "instruction": planned.instruction,
                 **({"task": planned.source.task} if len(survey_.tasks) > 1 else {}),
-                **({"human_instruction_line": row.line, "author": row.author, "language": row.language} if row else {}),
+                **({"human_instruction_line": row.line, "author": row.author, "language": row.language,
+                    **({"annotation_id": row.record_id} if row.record_id else {})} if row else {}),
             })
         dataset.finalize()
     finally:
         dataset.stop_image_writer()
     shutil.rmtree(root / "images", ignore_errors=True)  # empty once the PNGs are embedded in the parquet files
     dataset.meta.info["demo_factory"] = {
+        "format_version": DATASET_FORMAT_VERSION,
         "task": survey_.task,
         "split": plan.name,
         "instruction_source": plan.instruction_source,
@@ -329,6 +335,20 @@ def write_split(plan: SplitPlan, root: Path, repo_id: str, survey_: _Survey, gra
     write_info(dataset.meta.info, root)
     return SplitSummary(plan.name, repo_id, plan.instruction_source, len(plan.episodes), frames,
                         len({e.source.variation_id for e in plan.episodes}))
+
+
+def check_dataset_provenance(provenance: dict | None, root: Path | str) -> dict:
+    """A converted split's ``meta/info.json["demo_factory"]``, refused (``ConvertError``, one line) when it
+    is missing or from a dataset format this demo-factory does not read (older variation numbering)."""
+    if not provenance:
+        raise ConvertError(f"{root}: not a demo-factory dataset (no 'demo_factory' in meta/info.json)")
+    found = provenance.get("format_version", 1)
+    if found != DATASET_FORMAT_VERSION:
+        why = ("numbers variations the old way (before the HiveFormer paper's ids); regenerate and convert it again"
+               if found < DATASET_FORMAT_VERSION else "is newer than this demo-factory reads; upgrade demo-factory")
+        raise ConvertError(f"{root}: dataset format version {found} {why} (this demo-factory reads version "
+                           f"{DATASET_FORMAT_VERSION})")
+    return provenance
 
 
 def plan_multi_task_splits(sources: list[SourceEpisode], tasks, val_ratio: float) -> dict[str, SplitPlan]:
@@ -349,7 +369,8 @@ def convert(options: ConvertOptions, log: Callable[[str], None] = print) -> Conv
     found = survey(paths, options)
     if len(found.tasks) == 1:
         human_file, human_rows = _load_human_rows(options, found.task)
-        plans, assignment = plan_splits(found.sources, options.val_ratio, human_rows)
+        usable = None if human_rows is None else sentence_rows(human_rows)[0]
+        plans, assignment = plan_splits(found.sources, options.val_ratio, usable)
     else:
         human_file, human_rows, assignment = None, None, None
         plans = plan_multi_task_splits(found.sources, found.tasks, options.val_ratio)
@@ -390,6 +411,7 @@ def convert(options: ConvertOptions, log: Callable[[str], None] = print) -> Conv
             out=out, repo_id=options.repo_id, task=found.task, granularity=options.granularity, fps=found.fps,
             cameras=found.cameras, image_size=found.image_size, splits=summaries, skipped_splits=skipped_splits,
             invalid=found.invalid, sources=found.sources, human_file=human_file, human_assignment=assignment,
+            human_rows=human_rows,
             seconds=0.0, frames_written=sum(s.frames for s in summaries), command=convert_command(options, found.task),
             other_tasks=found.other_tasks,
             generation_summaries=[g for g in find_generation_summaries(options.inputs) if g.get("task") in found.tasks],

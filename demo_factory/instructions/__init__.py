@@ -5,6 +5,7 @@ from demo_factory.instructions.human import (
     HumanInstruction,
     HumanInstructionError,
     assign_human_instructions,
+    hiveformer_annotations,
     load_human_instructions,
     shipped_human_instructions,
 )
@@ -16,6 +17,7 @@ __all__ = [
     "assign_human_instructions",
     "colour_words",
     "corrupt_instruction",
+    "hiveformer_annotations",
     "load_human_instructions",
     "shipped_human_instructions",
 ]

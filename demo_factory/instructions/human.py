@@ -1,9 +1,21 @@
-"""Human-written instructions: the file format, its validation, and how episodes get them.
+"""Human-written instructions: the file formats, their validation, and how episodes get them.
 
-File format (JSON Lines, UTF-8; one JSON object per line; blank lines are ignored)::
+Two formats are read (``load_human_instructions`` tells them apart by the first character):
+
+1. **The HiveFormer authors' ``annotations.json``** (a JSON array), as it is: the paper's 162
+   sentences written by people for the unseen test variations of ``push_buttons3`` and ``tower3``.
+   It ships with demo_factory (``data/hiveformer/``, MIT licence) and is the default human set of
+   both tasks. A row's ``fields.variation`` is the fork's variation id, which is ours too (see
+   ``demo_factory.tasks.variations.hiveformer_sequences``); ``fields.colors``, where present, must
+   agree with it; ``fields.instruction`` is kept exactly, typos, line breaks and spaces included.
+   One row of the authors' file has an empty sentence (tower3 variation 136): it is read, and
+   ``sentence_rows`` leaves it out of the human split.
+
+2. **demo-factory's own JSON Lines** (UTF-8; one JSON object per line; blank lines are ignored),
+   written e.g. by ``demo-factory collect-instructions``::
 
     {"task": "push_buttons", "colours": ["green", "cyan", "rose"], "instruction": "hit green, then cyan, then the pink one", "author": "a", "language": "en"}
-    {"task": "tower", "variation_id": 13, "instruction": "put the purple block on the grey mat"}
+    {"task": "tower", "variation_id": 113, "instruction": "put the purple block on the grey mat"}
 
 - ``task`` (required): a registered task name.
 - the variation, by ``variation_id`` (its id in the task's enumeration) or ``colours`` (the
@@ -15,7 +27,9 @@ File format (JSON Lines, UTF-8; one JSON object per line; blank lines are ignore
 - ``author``, ``language`` (optional; language defaults to "en"), ``timestamp`` (optional, when it
   was written: an ISO 8601 string). No other fields.
 
-Any violation raises ``HumanInstructionError`` naming the file, the line number and the problem.
+Any violation raises ``HumanInstructionError`` naming the file, the line (JSONL) or row
+(annotations) number and the problem. In both formats a row must describe an unseen variation: a
+row for a training variation is refused, naming the leak.
 
 Assignment (``assign_human_instructions``): per variation, with its episodes e_0..e_{n-1} and
 its rows r_0..r_{m-1} (both in a fixed order), the human split gets max(n, m) episodes; the j-th
@@ -51,22 +65,37 @@ class HumanInstruction:
     instruction: str
     author: str | None
     language: str
-    line: int  # 1-based line in the file it came from
+    line: int  # 1-based line (JSONL) or row (annotations.json) in the file it came from
+    record_id: str | None = None  # the row's "id" in the authors' annotations.json
+
+
+def hiveformer_annotations() -> Path:
+    """The HiveFormer authors' ``annotations.json`` shipped with demo_factory (MIT, LICENSE beside it)."""
+    return Path(str(resources.files("demo_factory.instructions") / "data" / "hiveformer" / "annotations.json"))
 
 
 def shipped_human_instructions(task: str) -> Path | None:
-    """The hand-written instruction file shipped with demo_factory for ``task``, if there is one."""
-    path = Path(str(resources.files("demo_factory.instructions") / "data" / f"{task}_human.jsonl"))
-    return path if path.is_file() else None
+    """The human-written instruction file shipped for ``task``: the paper's annotations for the
+    tasks numbered as the paper (push_buttons, tower), else None."""
+    if task in TASKS and TASKS[task].paper_numbering is not None:
+        return hiveformer_annotations()
+    return None
 
 
 def load_human_instructions(path: str | os.PathLike) -> list[HumanInstruction]:
-    """Read and validate every row of a human-instruction file (any tasks), in file order."""
+    """Read and validate every row of a human-instruction file (any tasks), in file order:
+    the authors' ``annotations.json`` (a JSON array) or demo-factory's JSON Lines."""
     path = Path(path)
     try:
-        lines = path.read_text(encoding="utf-8").splitlines()
+        text = path.read_text(encoding="utf-8")
     except (OSError, UnicodeDecodeError) as exc:
         raise HumanInstructionError(f"{path}: cannot read human-instruction file ({exc})") from exc
+    if text.lstrip().startswith("["):
+        return _load_annotations(path, text)
+    return _load_jsonl(path, text.splitlines())
+
+
+def _load_jsonl(path: Path, lines: list[str]) -> list[HumanInstruction]:
     rows: list[HumanInstruction] = []
     seen: dict[tuple[str, str], int] = {}
     for number, text in enumerate(lines, start=1):
@@ -81,6 +110,50 @@ def load_human_instructions(path: str | os.PathLike) -> list[HumanInstruction]:
     if not rows:
         raise HumanInstructionError(f"{path}: no instructions in the file")
     return rows
+
+
+def _load_annotations(path: Path, text: str) -> list[HumanInstruction]:
+    """The authors' annotations.json: a JSON array of {"id", "fields": {"task", "variation", "instruction", ...}}."""
+    try:
+        records = json.loads(text)
+    except json.JSONDecodeError as exc:
+        raise HumanInstructionError(f"{path}: not valid JSON ({exc.msg} at line {exc.lineno})") from None
+    by_fork_name = {cls.paper_numbering.fork_task: name for name, cls in TASKS.items() if cls.paper_numbering}
+    rows = []
+    for number, record in enumerate(records, start=1):
+        where = f"{path}: row {number}" + (f" ({record['id']})" if isinstance(record, dict) and "id" in record else "")
+        fields = record.get("fields") if isinstance(record, dict) else None
+        if not isinstance(fields, dict):
+            raise HumanInstructionError(f"{where}: expected an object with 'fields' (the authors' annotations format)")
+        fork_task = fields.get("task")
+        if fork_task not in by_fork_name:
+            raise HumanInstructionError(f"{where}: unknown task {fork_task!r}; accepted: {', '.join(by_fork_name)}")
+        task = get_task(by_fork_name[fork_task])
+        vid = fields.get("variation")
+        if not isinstance(vid, int) or isinstance(vid, bool) or not 0 <= vid < task.paper_numbering.total:
+            raise HumanInstructionError(f"{where}: variation {vid!r} does not exist; {fork_task} has ids 0 to "
+                                        f"{task.paper_numbering.total - 1}")
+        variation = task.variation(vid)
+        if "colors" in fields and [str(c).lower() for c in fields["colors"] or []] != list(variation.colours):
+            raise HumanInstructionError(f"{where}: colors {fields['colors']} disagree with {fork_task} variation {vid}, "
+                                        f"which is {variation.name}")
+        try:
+            task.check_split_membership(variation, "test")
+        except ValueError as exc:
+            raise HumanInstructionError(f"{where}: {exc}; human instructions describe unseen (test) variations") from None
+        instruction = fields.get("instruction")
+        if not isinstance(instruction, str):  # "" is kept: the authors' file has one blank row (tower3 136)
+            raise HumanInstructionError(f"{where}: instruction is missing; expected a string")
+        rows.append(HumanInstruction(task.name, vid, variation.colours, instruction, None, "en", number,
+                                     record.get("id")))
+    if not rows:
+        raise HumanInstructionError(f"{path}: no instructions in the file")
+    return rows
+
+
+def sentence_rows(rows: list[HumanInstruction]) -> tuple[list[HumanInstruction], list[HumanInstruction]]:
+    """The rows with a sentence, and the blank ones (which cannot instruct an episode)."""
+    return [r for r in rows if r.instruction.strip()], [r for r in rows if not r.instruction.strip()]
 
 
 def _parse_row(text: str, error) -> HumanInstruction:

@@ -17,7 +17,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-FORMAT_VERSION = 1
+# 2: push_buttons and tower variation ids are the HiveFormer paper's (train 0-99, test 100-199);
+# version 1 recordings numbered them differently and are refused by the reader.
+FORMAT_VERSION = 2
 
 
 @dataclass

@@ -103,6 +103,11 @@ def _assemble(path: Path, messages: list[tuple[str, int, object]], images: bool 
             f"{path}: recording format version {found} is newer than this demo-factory reads "
             f"(up to {FORMAT_VERSION}); upgrade demo-factory"
         )
+    if found < FORMAT_VERSION:
+        raise RecordingError(
+            f"{path}: recording format version {found} numbers variations the old way (before the HiveFormer "
+            f"paper's ids); regenerate it with this demo-factory (format version {FORMAT_VERSION})"
+        )
     if result is None:
         raise RecordingError(f"{path}: truncated recording (no {schema.RESULT_TOPIC} message)")
     info = EpisodeInfo(

@@ -9,7 +9,14 @@ from functools import cache
 import numpy as np
 
 from demo_factory.tasks.palette import canonical_colour
-from demo_factory.tasks.variations import SPLITS, Variation, enumerate_sequences, split_variations
+from demo_factory.tasks.variations import (
+    SPLITS,
+    PaperNumbering,
+    Variation,
+    enumerate_sequences,
+    paper_variations,
+    split_variations,
+)
 
 
 @dataclass(frozen=True)
@@ -38,10 +45,13 @@ class Task(ABC):
     not vary has one variation, named by its single palette word, and differs between episodes by
     the placement drawn from the episode seed only.
 
-    Splits: colour tasks deal their variations to disjoint train and test sets (``n_train`` /
-    ``n_test``). With ``shared_split`` both splits hold every variation (tasks with a handful of
-    goals, where the paper has no unseen-variation split); their test episodes differ from the
-    training ones only by the scene seed, and ``check_split_membership`` accepts either split.
+    Splits: a task with ``paper_numbering`` (HiveFormer's multi-variation tasks) numbers its
+    variations as the HiveFormer authors' RLBench fork does, with train = ids 0..n_train-1 and
+    test = the next n_test ids, as in the paper. Other colour tasks deal their variations to
+    disjoint train and test sets (``n_train`` / ``n_test``) at random with ``split_seed``. With
+    ``shared_split`` both splits hold every variation (tasks with a handful of goals, where the
+    paper has no unseen-variation split); their test episodes differ from the training ones only by
+    the scene seed, and ``check_split_membership`` accepts either split.
     """
 
     name: str
@@ -54,6 +64,7 @@ class Task(ABC):
     n_test: int = 100
     shared_split: bool = False
     split_seed: int = 0
+    paper_numbering: PaperNumbering | None = None
     gripper_starts_open: bool = True
 
     # -- variations (pure functions of the class, computed once per process) ----------------
@@ -66,6 +77,17 @@ class Task(ABC):
     def splits(self) -> dict[str, list[Variation]]:
         """The disjoint train and test variation sets."""
         return _enumeration(type(self))[1]
+
+    @property
+    def variation_scheme(self) -> str:
+        """How the variation ids and the splits are chosen, in one line (for `demo-factory tasks` and cards)."""
+        if self.paper_numbering is not None:
+            n = self.paper_numbering
+            return (f"HiveFormer paper ids (the authors' RLBench fork, {n.fork_task}): train 0-{self.n_train - 1}, "
+                    f"test {self.n_train}-{self.n_train + self.n_test - 1}")
+        if self.shared_split:
+            return "every variation in both splits"
+        return f"dealt at random (seed {self.split_seed})"
 
     def split_variations(self, split: str) -> list[Variation]:
         if split not in SPLITS:
@@ -157,6 +179,10 @@ class Task(ABC):
 @cache
 def _enumeration(cls: type[Task]):
     """A task class's variations, their train/test split and a word-sequence index."""
+    if cls.paper_numbering is not None:
+        variations = paper_variations(cls.palette, cls.max_sequence, cls.paper_numbering)
+        splits = {"train": variations[:cls.n_train], "test": variations[cls.n_train:cls.n_train + cls.n_test]}
+        return variations, splits, {v.colours: v for v in variations}
     variations = enumerate_sequences(cls.palette, cls.max_sequence)
     if cls.shared_split:
         splits = {"train": list(variations), "test": list(variations)}

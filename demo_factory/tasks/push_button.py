@@ -15,6 +15,7 @@ class PushButton(PushButtons):
     max_sequence = 1
     n_train = n_test = 9
     split_seed = 20220302
+    paper_numbering = None  # not one of the paper's numbered tasks: its 18 colours are dealt at random
 
     def synthetic_instructions(self, variation: Variation) -> list[str]:
         c = variation.colours[0]

@@ -9,7 +9,7 @@ from demo_factory.sim.world import TOP_DOWN
 from demo_factory.tasks import motions
 from demo_factory.tasks.base import KeyframeTarget, Task, spread_positions
 from demo_factory.tasks.palette import PUSH_BUTTON_COLOURS, rgba
-from demo_factory.tasks.variations import Variation
+from demo_factory.tasks.variations import PaperNumbering, Variation
 
 N_BUTTONS = 3
 BASE_HALF = (0.035, 0.035, 0.01)  # grey housing on the table
@@ -35,7 +35,8 @@ class PushButtons(Task):
     description = "Push 1-3 of three coloured buttons in the instructed order."
     category = "long term"
     palette = PUSH_BUTTON_COLOURS
-    split_seed = 20220101
+    # The fork's 18 x 17 x 16 + 18 x 17 + 18 = 5220 sequences, every one of them: ids 0-5219.
+    paper_numbering = PaperNumbering("push_buttons3", per_length=5220, total=5220)
     gripper_starts_open = False
 
     def synthetic_instructions(self, variation: Variation) -> list[str]:

@@ -8,7 +8,7 @@ from scipy.spatial.transform import Rotation
 from demo_factory.tasks import motions
 from demo_factory.tasks.base import KeyframeTarget, Task, spread_positions
 from demo_factory.tasks.palette import TOWER_COLOURS, rgba
-from demo_factory.tasks.variations import Variation
+from demo_factory.tasks.variations import PaperNumbering, Variation
 
 N_CUBES = 4  # the instructed 1-3 plus distractors
 CUBE = 0.045  # edge length (m); the open gripper spans 0.08
@@ -26,7 +26,10 @@ class Tower(Task):
     description = "Stack 1-3 instructed coloured cubes in order on the target spot; other cubes are distractors."
     category = "long term"
     palette = TOWER_COLOURS
-    split_seed = 20220202
+    # The fork keeps 200 sequences (200 per length, then 200 of the 420); its 100 test variations
+    # 100-199 are exactly the colour sequences of the authors' annotations.json. Ids 200 on are the
+    # other sequences (see ``paper_variations``), never in a split, nameable as unseen variations.
+    paper_numbering = PaperNumbering("tower3", per_length=200, total=200)
 
     def synthetic_instructions(self, variation: Variation) -> list[str]:
         c = variation.colours
