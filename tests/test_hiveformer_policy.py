@@ -19,6 +19,7 @@ from lerobot_policy_hiveformer.modeling_hiveformer import (
     keyframe_observations,
     project_to_pixels,
     quaternion_loss,
+    random_rescale,
     supervised_steps,
     tiny_random_clip_text_model,
 )
@@ -58,10 +59,14 @@ def test_gripper_mark_peaks_at_the_projected_gripper(tiny_dataset_root):
     point = obs.points[0, -1, 0, :, 20, 11]  # the table point seen at row 20, column 11
     uv, in_front = project_to_pixels(point, calibration)
     assert in_front and torch.allclose(uv, torch.tensor([11.0, 20.0]), atol=0.1)
-    mark = gripper_mark(point, calibration, 32, 32, sigma_px=2.0)[0]
-    assert divmod(int(mark.argmax()), 32) == (20, 11)
-    behind = gripper_mark(2 * calibration[4:].view(4, 4)[:3, 3] - point, calibration, 32, 32, 2.0)
+    mark = gripper_mark(point, calibration, 32, 32)[0]
+    assert divmod(int(mark.argmax()), 32) == (20, 11) and mark.sum() == 1  # one pixel, as the authors'
+    behind = gripper_mark(2 * calibration[4:].view(4, 4)[:3, 3] - point, calibration, 32, 32)
     assert behind.max() == 0
+    off_image = obs.points[0, -1, 0, :, 20, 11] + torch.tensor([5.0, 0.0, 0.0])  # far to the side
+    uv, _ = project_to_pixels(off_image, calibration)
+    assert not (0 <= uv[0] < 32 and 0 <= uv[1] < 32)
+    assert gripper_mark(off_image, calibration, 32, 32).max() == 0  # nothing marked at the border
 
 
 def test_the_tokenizer_is_clips_and_needs_no_download():
@@ -154,7 +159,8 @@ def test_select_action_with_its_own_history_matches_training_windows(tiny_datase
 
 def test_tiny_model_overfits_a_few_episodes(tiny_dataset_root):
     torch.manual_seed(0)
-    policy = make_tiny_policy(tiny_dataset_root, n_history=2).train()
+    no_augmentation = {"augmentation_min_scale": 1.0, "augmentation_max_scale": 1.0}
+    policy = make_tiny_policy(tiny_dataset_root, n_history=2, **no_augmentation).train()
     batch = history_batch(tiny_dataset_root, policy.config, range(sum(EPISODE_LENGTHS[:2])))
     optimizer = torch.optim.AdamW(policy.get_optim_params(), lr=3e-3)
     losses = []
@@ -240,13 +246,68 @@ def test_training_decodes_only_supervised_steps_with_the_same_predictions(tiny_d
     policy = make_tiny_policy(tiny_dataset_root).eval()
     batch = history_batch(tiny_dataset_root, policy.config, [0, 1, 7])  # 2, 1 and 0 padded steps
     supervised = supervised_steps(batch, batch["action"])
-    assert supervised.sum() == 6
+    assert supervised.sum() == 4
     obs = keyframe_observations(batch, policy.config)
     instruction, instruction_mask = policy._encode_instructions(obs.instructions, obs.rgb.device)
     with torch.no_grad():
         window = policy.predict_keyframes(batch)  # every step, padding included: (3, 3, ...)
-        decoded = policy.model(obs, instruction, instruction_mask, decode=supervised)  # (6, ...)
-    assert decoded.position.shape == (6, 3) and decoded.pixel_attention.shape == (6, 3, 32, 32)
+        decoded = policy.model(obs, instruction, instruction_mask, decode=supervised)  # (4, ...)
+    assert decoded.position.shape == (4, 3) and decoded.pixel_attention.shape == (4, 3, 32, 32)
     assert torch.allclose(decoded.position, window.position[supervised], atol=1e-6)
     assert torch.allclose(decoded.quaternion, window.quaternion[supervised], atol=1e-6)
     assert torch.allclose(decoded.pixel_attention, window.pixel_attention[supervised], atol=1e-6)
+
+
+def test_only_contexts_a_rollout_produces_are_supervised(tiny_dataset_root):
+    config, _ = tiny_config(tiny_dataset_root)  # history 3
+    # Episode 3 has 6 keyframes: windows at keyframes 0..5 of it.
+    start = EPISODE_STARTS[3]
+    batch = history_batch(tiny_dataset_root, config, list(range(start, start + EPISODE_LENGTHS[3])))
+    supervised = supervised_steps(batch, batch["action"]).tolist()
+    assert supervised == [
+        [False, False, True],  # keyframe 0: the window starts at the episode start
+        [False, True, True],  # keyframe 1: keyframes 0 and 1 both see their whole history
+        [False, False, True],  # keyframe 2: no padding; keyframes 0 and 1 are supervised in their own windows
+        [False, False, True],  # keyframes 3..5: earlier steps of the window see a truncated history
+        [False, False, True],
+        [False, False, True],
+    ]
+
+
+def test_the_position_offset_starts_at_zero(tiny_dataset_root):
+    policy = make_tiny_policy(tiny_dataset_root).eval()
+    batch = history_batch(tiny_dataset_root, policy.config, [4, 11])
+    with torch.no_grad():
+        prediction = policy.predict_keyframes(batch)
+    obs = keyframe_observations(batch, policy.config)
+    attended = torch.einsum("btchw,btckhw->btk", prediction.pixel_attention, obs.points)
+    assert torch.allclose(prediction.position, attended, atol=1e-6)
+
+
+def test_random_rescale_moves_colour_points_and_mark_together(tiny_dataset_root):
+    config, _ = tiny_config(tiny_dataset_root)
+    obs = keyframe_observations(history_batch(tiny_dataset_root, config, [5]), config)
+    assert torch.equal(random_rescale(obs, 1.0, 1.0).points, obs.points)
+    torch.manual_seed(3)
+    for scale in (0.75, 1.25):
+        out = random_rescale(obs, scale, scale)
+        assert out.rgb.shape == obs.rgb.shape and out.mark.shape == obs.mark.shape
+        # Every output pixel is one input pixel: its colour, point and validity travel together.
+        before = torch.cat([obs.rgb, obs.points, obs.valid_pixels.unsqueeze(3).float()], 3)
+        after = torch.cat([out.rgb, out.points, out.valid_pixels.unsqueeze(3).float()], 3)
+        pairs_before = {tuple(p) for p in before[0, -1, 0].flatten(1).T.tolist()}
+        assert all(tuple(p) in pairs_before for p in after[0, -1, 0].flatten(1).T.tolist())
+        assert torch.equal(out.calibration, obs.calibration)  # calibration is never augmented
+
+
+def test_optimiser_preset_is_the_authors(tiny_dataset_root):
+    policy = make_tiny_policy(tiny_dataset_root)
+    preset = policy.config.get_optimizer_preset()
+    assert (preset.lr, preset.weight_decay, preset.grad_clip_norm) == (1e-3, 5e-4, 0.0)
+    decayed, plain = policy.get_optim_params()
+    assert plain["weight_decay"] == 0.0 and "weight_decay" not in decayed
+    norms = (torch.nn.LayerNorm, torch.nn.GroupNorm)
+    norm_weights = {id(m.weight) for m in policy.modules() if isinstance(m, norms)}
+    biases = {id(p) for name, p in policy.named_parameters() if name.endswith("bias")}
+    assert {id(p) for p in plain["params"]} == norm_weights | biases
+    assert len(plain["params"]) + len(decayed["params"]) == len(list(policy.parameters()))

@@ -50,8 +50,8 @@ class HiveformerConfig(PreTrainedConfig):
     # Block-causal transformer layers (each: cross-attention to instruction + history, self-attention
     # within the step, feed-forward).
     num_layers: int = 1
-    # Inner size of the transformer's feed-forward layers.
-    feedforward_dim: int = 256
+    # Inner size of the transformer's feed-forward layers (the authors' dim_feedforward).
+    feedforward_dim: int = 64
     # Dropout on the outputs of the attention and feed-forward sublayers and inside the feed-forward.
     dropout: float = 0.1
     # Dropout on the attention weights: 0.1 as in the authors' code. PyTorch's fused attention kernels
@@ -64,9 +64,13 @@ class HiveformerConfig(PreTrainedConfig):
     use_position_embeddings: bool = True
     # Softmax temperature of the per-pixel attention over all pixels of all cameras.
     attention_temperature: float = 0.1
-    # Standard deviation, in pixels, of the Gaussian that marks the current gripper position in the
-    # fourth input channel of each camera.
-    gripper_mark_sigma_px: float = 2.0
+    # Training augmentation, as in the authors' code: every sample's images (RGB, point cloud and
+    # gripper mark of all its steps and cameras together) are rescaled by a random factor in
+    # [augmentation_min_scale, augmentation_max_scale] (nearest neighbour), padded by reflection when
+    # smaller and randomly cropped back to their size. Both 1.0 turns it off. Depth and calibration
+    # are never changed: the point cloud is rebuilt before the rescale and moves with the pixels.
+    augmentation_min_scale: float = 0.75
+    augmentation_max_scale: float = 1.25
 
     # "clip": frozen CLIP text transformer with real weights (`text_encoder_name` from the Hugging Face
     # cache, or `text_encoder_path`); "clip_tiny_random": the real CLIP tokenizer with a small randomly
@@ -88,10 +92,12 @@ class HiveformerConfig(PreTrainedConfig):
     rotation_loss_weight: float = 1.0
     gripper_loss_weight: float = 1.0
 
-    # AdamW preset.
-    optimizer_lr: float = 1e-4
-    optimizer_weight_decay: float = 1e-4
-    optimizer_grad_clip_norm: float = 10.0
+    # AdamW preset, the authors' (train.py): lr 1e-3, weight decay 5e-4 except on biases and normalisation
+    # layers (see HiveformerPolicy.get_optim_params), no gradient clipping (0 = off). The authors' batch is
+    # 32 (`--batch_size=32`, a lerobot-train option).
+    optimizer_lr: float = 1e-3
+    optimizer_weight_decay: float = 5e-4
+    optimizer_grad_clip_norm: float = 0.0
 
     # Every input is consumed in physical units (see the class docstring); only IDENTITY is accepted.
     normalization_mapping: dict[str, NormalizationMode] = field(
@@ -120,8 +126,11 @@ class HiveformerConfig(PreTrainedConfig):
             raise ValueError(f"attention_dropout must be in [0, 1), got {self.attention_dropout}.")
         if self.attention_temperature <= 0:
             raise ValueError(f"attention_temperature must be > 0, got {self.attention_temperature}.")
-        if self.gripper_mark_sigma_px <= 0:
-            raise ValueError(f"gripper_mark_sigma_px must be > 0, got {self.gripper_mark_sigma_px}.")
+        if not 0 < self.augmentation_min_scale <= self.augmentation_max_scale:
+            raise ValueError(
+                "augmentation scales must satisfy 0 < augmentation_min_scale <= augmentation_max_scale; got "
+                f"{self.augmentation_min_scale} and {self.augmentation_max_scale}."
+            )
         if self.text_encoder not in TEXT_ENCODERS:
             raise ValueError(
                 f"text_encoder must be one of {', '.join(TEXT_ENCODERS)}; got {self.text_encoder!r}."

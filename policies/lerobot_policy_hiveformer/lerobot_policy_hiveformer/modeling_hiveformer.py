@@ -83,21 +83,19 @@ def project_to_pixels(points: Tensor, calibration: Tensor) -> tuple[Tensor, Tens
     return torch.stack([u, v], dim=-1), in_front
 
 
-def gripper_mark(
-    gripper_xyz: Tensor, calibration: Tensor, height: int, width: int, sigma_px: float
-) -> Tensor:
-    """Gaussian blob at the gripper's projection into each camera; zero if it is behind the camera.
+def gripper_mark(gripper_xyz: Tensor, calibration: Tensor, height: int, width: int) -> Tensor:
+    """1 at the pixel where the gripper projects into each camera, as in the authors' code; all zeros when
+    it projects outside the image or lies behind the camera.
 
     gripper_xyz: (..., 3); calibration: (..., 20). Returns (..., 1, H, W).
     """
     uv, in_front = project_to_pixels(gripper_xyz, calibration)
-    rows = torch.arange(height, device=uv.device, dtype=uv.dtype)
-    cols = torch.arange(width, device=uv.device, dtype=uv.dtype)
-    # The Gaussian is separable: exp over H + W values and one outer product, not exp over H * W.
-    across = torch.exp(-((cols - uv[..., 0, None]) ** 2) / (2 * sigma_px**2))  # (..., W)
-    down = torch.exp(-((rows - uv[..., 1, None]) ** 2) / (2 * sigma_px**2))  # (..., H)
-    down = down * in_front[..., None].to(down.dtype)
-    return (down[..., :, None] * across[..., None, :]).unsqueeze(-3)
+    u, v = torch.round(uv).long().unbind(-1)
+    inside = in_front & (u >= 0) & (u < width) & (v >= 0) & (v < height)
+    mark = torch.zeros(*u.shape, height * width, dtype=uv.dtype, device=uv.device)
+    pixel = (v.clamp(0, height - 1) * width + u.clamp(0, width - 1)).unsqueeze(-1)
+    mark.scatter_(-1, pixel, inside.unsqueeze(-1).to(uv.dtype))
+    return mark.view(*u.shape, 1, height, width)
 
 
 def quaternion_loss(predicted: Tensor, target: Tensor) -> Tensor:
@@ -117,6 +115,7 @@ class KeyframeObservations:
     rgb: Tensor  # (B, T, C, 3, H, W) in [0, 1]
     points: Tensor  # (B, T, C, 3, H, W) world metres, 0 where no depth
     valid_pixels: Tensor  # (B, T, C, H, W) bool: the depth had a hit
+    mark: Tensor  # (B, T, C, 1, H, W): 1 at the current gripper position's pixel
     calibration: Tensor  # (B, T, C, 20)
     gripper: Tensor  # (B, T, 8) = [x, y, z, qx, qy, qz, qw, open]
     step_valid: Tensor  # (B, T) bool: False for padding before the episode start
@@ -139,6 +138,8 @@ def keyframe_observations(batch: dict, config: HiveformerConfig) -> KeyframeObse
     valid_pixels = depth_mm > 0
     points = depth_to_world_points(depth_mm / 1000.0, calibration) * valid_pixels.unsqueeze(-3)
     gripper = with_time(batch[OBS_STATE])[..., :GRIPPER_STATE_DIM].float()
+    height, width = rgb.shape[-2:]
+    mark = gripper_mark(gripper[:, :, None, :3].expand_as(calibration[..., :3]), calibration, height, width)
 
     batch_size, steps = rgb.shape[:2]
     pad_key = OBS_STATE + "_is_pad"
@@ -156,10 +157,42 @@ def keyframe_observations(batch: dict, config: HiveformerConfig) -> KeyframeObse
         rgb=rgb.float(),
         points=points,
         valid_pixels=valid_pixels,
+        mark=mark,
         calibration=calibration,
         gripper=gripper,
         step_valid=step_valid,
         instructions=list(instructions),
+    )
+
+
+def random_rescale(obs: KeyframeObservations, min_scale: float, max_scale: float) -> KeyframeObservations:
+    """The authors' training augmentation: per sample, one random scale for all its steps and cameras;
+    RGB, point cloud, valid-pixel mask and gripper mark are resized together (nearest neighbour), padded
+    by reflection when smaller, then cropped back to (H, W) at a random offset.
+    """
+    batch, steps, cameras, _, height, width = obs.rgb.shape
+    maps = torch.cat([obs.rgb, obs.points, obs.valid_pixels.unsqueeze(3).to(obs.rgb.dtype), obs.mark], dim=3)
+    rescaled = []
+    for sample in maps:  # (T, C, 8, H, W)
+        scale = float(torch.empty(()).uniform_(min_scale, max_scale))
+        size = (max(int(height * scale), 1), max(int(width * scale), 1))
+        x = F.interpolate(sample.flatten(0, 1), size=size, mode="nearest")
+        pad_bottom, pad_right = max(height - size[0], 0), max(width - size[1], 0)
+        if pad_bottom or pad_right:
+            x = F.pad(x, (0, pad_right, 0, pad_bottom), mode="reflect")
+        top = int(torch.randint(0, x.shape[-2] - height + 1, ()))
+        left = int(torch.randint(0, x.shape[-1] - width + 1, ()))
+        rescaled.append(x[..., top : top + height, left : left + width].unflatten(0, (steps, cameras)))
+    maps = torch.stack(rescaled)  # (B, T, C, 8, H, W)
+    return KeyframeObservations(
+        rgb=maps[:, :, :, :3],
+        points=maps[:, :, :, 3:6],
+        valid_pixels=maps[:, :, :, 6] > 0.5,
+        mark=maps[:, :, :, 7:],
+        calibration=obs.calibration,
+        gripper=obs.gripper,
+        step_valid=obs.step_valid,
+        instructions=obs.instructions,
     )
 
 
@@ -510,6 +543,11 @@ class HiveformerModel(nn.Module):
         self.rotation_gripper_head = nn.Sequential(
             nn.Linear(2 * dim, dim), nn.LeakyReLU(LEAKY_SLOPE), nn.Linear(dim, 8)
         )
+        # The offset starts at zero, as the authors' offset table does: at first the position is the
+        # attention-weighted point of the cloud, so the pixel heatmap has to do the pointing.
+        with torch.no_grad():
+            self.rotation_gripper_head[-1].weight[:3].zero_()
+            self.rotation_gripper_head[-1].bias[:3].zero_()
 
     @property
     def tokens_per_step(self) -> int:
@@ -521,14 +559,8 @@ class HiveformerModel(nn.Module):
         Only the steps where `encode` (B, T) is True go through the encoder; the others (history padding,
         which no step attends to) keep zero patch features.
         """
-        batch, steps, cameras, _, height, width = obs.rgb.shape
-        mark = gripper_mark(
-            take_steps(obs.gripper, encode)[:, None, :3].expand(-1, cameras, -1),
-            take_steps(obs.calibration, encode),
-            height,
-            width,
-            self.config.gripper_mark_sigma_px,
-        )  # (M, C, 1, H, W)
+        batch, steps, cameras = obs.rgb.shape[:3]
+        mark = take_steps(obs.mark, encode)  # (M, C, 1, H, W)
         points = take_steps(obs.points, encode)  # (M, C, 3, H, W), already 0 where there is no depth
         # Built channels-last, (M, C, H, W, 7), and viewed as (M*C, 7, H, W): oneDNN's convolutions with
         # few channels run much faster on that layout than on NCHW (which they reorder on every call),
@@ -665,6 +697,7 @@ def _last_step(obs: KeyframeObservations) -> KeyframeObservations:
         rgb=obs.rgb[:, -1:],
         points=obs.points[:, -1:],
         valid_pixels=obs.valid_pixels[:, -1:],
+        mark=obs.mark[:, -1:],
         calibration=obs.calibration[:, -1:],
         gripper=obs.gripper[:, -1:],
         step_valid=obs.step_valid[:, -1:],
@@ -694,8 +727,17 @@ class HiveformerPolicy(PreTrainedPolicy):
         self.model = HiveformerModel(config, self.instruction_encoder.feature_dim)
         self.reset()
 
-    def get_optim_params(self) -> list[nn.Parameter]:
-        return [p for p in self.parameters() if p.requires_grad]
+    def get_optim_params(self) -> list[dict]:
+        """Two AdamW groups, as in the authors' train.py: no weight decay on biases and normalisation
+        layers, the preset's weight decay on everything else."""
+        no_decay = set()
+        for module in self.modules():
+            if isinstance(module, nn.LayerNorm | nn.GroupNorm):
+                no_decay.update(id(p) for p in module.parameters(recurse=False))
+        trainable = [(name, p) for name, p in self.named_parameters() if p.requires_grad]
+        plain = [p for name, p in trainable if name.endswith("bias") or id(p) in no_decay]
+        decayed = [p for name, p in trainable if not (name.endswith("bias") or id(p) in no_decay)]
+        return [{"params": decayed}, {"params": plain, "weight_decay": 0.0}]
 
     def reset(self):
         """Forget the rollout history; call at every episode start."""
@@ -722,6 +764,9 @@ class HiveformerPolicy(PreTrainedPolicy):
             target = target.unsqueeze(1)
         supervised = supervised_steps(batch, target)  # (B, T)
         obs = keyframe_observations(batch, self.config)
+        config = self.config
+        if self.training and (config.augmentation_min_scale, config.augmentation_max_scale) != (1.0, 1.0):
+            obs = random_rescale(obs, config.augmentation_min_scale, config.augmentation_max_scale)
         instruction, instruction_mask = self._encode_instructions(obs.instructions, obs.rgb.device)
         # The heads run on the supervised steps only: (M, ...) predictions for M supervised steps.
         prediction = self.model(obs, instruction, instruction_mask, decode=supervised)
@@ -768,10 +813,23 @@ class HiveformerPolicy(PreTrainedPolicy):
 
 
 def supervised_steps(batch: dict, target: Tensor) -> Tensor:
-    """(B, T) bool: steps that are neither history padding nor padded targets."""
-    supervised = torch.ones(target.shape[:2], dtype=torch.bool, device=target.device)
-    for key in (OBS_STATE + "_is_pad", ACTION + "_is_pad"):
-        if key in batch:
-            pad = batch[key].bool()
-            supervised &= ~(pad if pad.dim() == 2 else pad.unsqueeze(1))
-    return supervised
+    """(B, T) bool: the steps of each window whose context is one a rollout produces.
+
+    A rollout's window holds the episode from its first keyframe, or the last `T` keyframes. A training
+    window that starts at the episode start (its first step is padding) gives every real step exactly its
+    rollout context, so all of them are supervised. A window that starts later gives only its last step
+    the rollout context; its earlier steps see a truncated history that no rollout produces, so they are
+    not supervised (each of them is the last step of its own window).
+    """
+    steps = target.shape[1]
+    pad = batch.get(OBS_STATE + "_is_pad")
+    if pad is None or pad.dim() != 2:
+        real = torch.ones(target.shape[:2], dtype=torch.bool, device=target.device)
+    else:
+        real = ~pad.bool()
+    action_pad = batch.get(ACTION + "_is_pad")
+    if action_pad is not None:
+        real &= ~(action_pad.bool() if action_pad.dim() == 2 else action_pad.bool().unsqueeze(1))
+    starts_at_episode_start = ~real[:, :1]  # (B, 1): padding before the first real step
+    last = torch.arange(steps, device=target.device) == steps - 1
+    return real & (starts_at_episode_start | last)
