@@ -7,7 +7,7 @@ PLUGIN := policies/lerobot_policy_hiveformer
 DEMO_RAW := data/raw/push_buttons
 DEMO_DATASET := data/lerobot/push_buttons
 
-.PHONY: install demo test bench cards clean
+.PHONY: install demo test bench reference cards clean
 
 install: $(STAMP)
 
@@ -39,6 +39,11 @@ test: install
 
 bench: install
 	$(BIN)/python -m demo_factory.bench --out bench/results.json
+
+# The reference run (not part of `make test`): push_buttons demos → dataset → lerobot-train HiveFormer
+# → closed-loop eval, on the CPU in about an hour; resumes if interrupted. Results in outputs/reference/.
+reference: install
+	$(BIN)/python -m demo_factory.reference_run --out outputs/reference
 
 # The committed cards of the standard datasets (dataset_cards/<name>/README.md + contact sheet),
 # from a few freshly generated episodes per split in a temporary folder.

@@ -21,6 +21,7 @@ import numpy as np
 from tqdm import tqdm
 
 from demo_factory.generate import EpisodeRequest, episode_seed, job_requests, library_versions, run_requests
+from demo_factory.reference_run import REFERENCE_IMAGE_SIZE
 from demo_factory.tasks import get_task
 
 REPO = Path(__file__).resolve().parent.parent
@@ -194,6 +195,81 @@ def bench_hiveformer() -> dict:
     return json.loads(text[text.index("{"):])
 
 
+def _history_items_per_second(root: Path, n_history: int, items: int) -> dict:
+    """Items/s of one DataLoader worker (one torch thread) reading HiveFormer's keyframe history:
+    LeRobot's stock reader against the plugin's, on the same random frames of a warm dataset."""
+    import random
+
+    import torch
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+    from lerobot_policy_hiveformer import dataset_reading
+
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)  # what a DataLoader worker runs with
+    meta = LeRobotDataset("bench/history", root=root).meta
+    deltas = [i / meta.fps for i in range(1 - n_history, 1)]
+    keys = [k for k in meta.features if k.startswith("observation.")] + ["action"]
+    dataset = LeRobotDataset("bench/history", root=root, delta_timestamps={k: deltas for k in keys})
+    for index in range(len(dataset)):  # page cache warm for both readers
+        dataset_reading.read_item(dataset, index)
+    frames = random.Random(0).sample(range(len(dataset)), min(items, len(dataset)))
+    rates = {}
+    for name, read, count in (("stock", dataset_reading.stock_getitem, max(len(frames) // 6, 5)),
+                              ("plugin", dataset_reading.read_item, len(frames))):
+        began = time.perf_counter()
+        for index in frames[:count]:
+            read(dataset, index)
+        rates[name] = count / (time.perf_counter() - began)
+    torch.set_num_threads(threads)
+    return {"history_steps": n_history, "keys_with_history": len(keys), "frames_in_dataset": len(dataset),
+            "stock_items_per_second": rates["stock"], "plugin_items_per_second": rates["plugin"],
+            "speedup": rates["plugin"] / rates["stock"]}
+
+
+def _train_log_timings(log: str) -> dict:
+    """Median update and data seconds per step over lerobot-train's log lines, the first one left out."""
+    import re
+
+    updates = [float(x) for x in re.findall(r"updt_s:([0-9.]+)", log)][1:]
+    data = [float(x) for x in re.findall(r"data_s:([0-9.]+)", log)][1:]
+    if not updates:
+        return {"error": "no training log lines"}
+    update_s, data_s = float(np.median(updates)), float(np.median(data))
+    return {"updt_s": update_s, "data_s": data_s, "data_share_of_step": data_s / (update_s + data_s)}
+
+
+def bench_hiveformer_training(episodes: int, train_steps: int) -> dict:
+    """HiveFormer's data path and a real `lerobot-train` run in the reference run's CPU configuration.
+
+    Items/s are measured on 128x128 push_buttons keyframe datasets (3 cameras, history 6, every
+    observation key and the action), stock vs the plugin's reader. `updt_s` / `data_s` come from
+    `lerobot-train --policy.type=hiveformer` with the reference run's settings (its image size, batch,
+    one-hot instructions, one loader worker) on a dataset generated at that size.
+    """
+    from demo_factory.convert.converter import ConvertOptions, convert
+    from demo_factory.reference_run import train_command
+
+    figures = {}
+    with tempfile.TemporaryDirectory() as folder:
+        for size in sorted({128, REFERENCE_IMAGE_SIZE}):
+            raw, root = Path(folder) / f"raw{size}", Path(folder) / f"converted{size}"
+            requests = job_requests("push_buttons", "train", episodes, base_seed=78, image_size=(size, size))
+            list(run_requests(requests, raw, workers=os.cpu_count() or 1))
+            convert(ConvertOptions(inputs=[raw], out=root, repo_id="bench/history", val_ratio=0.0, progress=False),
+                    log=lambda _: None)
+        figures["history_reading_128px"] = _history_items_per_second(Path(folder) / "converted128" / "train", 6, 120)
+        output_dir = Path(folder) / "train"
+        command = train_command(Path(folder) / f"converted{REFERENCE_IMAGE_SIZE}" / "train", output_dir,
+                                steps=train_steps, log_freq=5)
+        result = subprocess.run(command, capture_output=True, text=True, env={**os.environ, "HF_HUB_OFFLINE": "1"})
+        if result.returncode != 0:
+            figures["lerobot_train"] = {"error": result.stderr.strip().splitlines()[-1] if result.stderr else "failed"}
+        else:
+            figures["lerobot_train"] = {"command": " ".join(command[1:]), "image_size": REFERENCE_IMAGE_SIZE,
+                                        **_train_log_timings(result.stdout + result.stderr)}
+    return figures
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(prog="python -m demo_factory.bench", description=__doc__)
     parser.add_argument("--out", default="bench/results.json", help="where to write the figures (JSON)")
@@ -224,9 +300,9 @@ def main(argv=None) -> int:
 
 
 FULL = {"speed_episodes": 20, "throughput_episodes": 12, "success_episodes": 100, "planner_queries": 1000,
-        "render_frames": 100, "conversion_episodes": 30}
+        "render_frames": 100, "conversion_episodes": 30, "history_episodes": 40, "train_steps": 40}
 QUICK = {"speed_episodes": 2, "throughput_episodes": 2, "success_episodes": 4, "planner_queries": 10,
-         "render_frames": 5, "conversion_episodes": 3}
+         "render_frames": 5, "conversion_episodes": 3, "history_episodes": 3, "train_steps": 6}
 SECTIONS = {
     "recorded_episode_speed_3_objects_3_cameras_128px": lambda c: {
         task: bench_recorded_episode_speed(task, c["speed_episodes"]) for task in ("push_buttons", "tower")},
@@ -242,6 +318,7 @@ SECTIONS = {
     "camera_render": lambda c: bench_render(c["render_frames"]),
     "conversion": lambda c: bench_conversion(c["conversion_episodes"]),
     "hiveformer_cpu": lambda c: bench_hiveformer(),
+    "hiveformer_training": lambda c: bench_hiveformer_training(c["history_episodes"], c["train_steps"]),
 }
 
 

@@ -1,6 +1,6 @@
 """Measure HiveFormer's size and CPU speed at the paper's settings (3 cameras 128x128, history 6).
 
-    python policies/lerobot_policy_hiveformer/measure_compute.py [--batch-size 8] [--threads 2]
+    python policies/lerobot_policy_hiveformer/measure_compute.py [--batch-size 8] [--threads 2] [--inference-threads 1]
 
 Times are medians over steps; `*_cpu_*` is the process's CPU time for the same steps (user + system, all
 threads), which tells a slow step on a busy machine (wall > CPU / threads) from a slow step. The load
@@ -77,7 +77,8 @@ def main() -> None:
     )
     parser.add_argument("--batch-size", type=int, default=8)
     parser.add_argument("--image-size", type=int, default=128)
-    parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--threads", type=int, default=2, help="torch threads for the training steps")
+    parser.add_argument("--inference-threads", type=int, default=1, help="torch threads for the rollout steps")
     parser.add_argument("--train-steps", type=int, default=5)
     parser.add_argument("--rollout-steps", type=int, default=20)
     parser.add_argument(
@@ -123,6 +124,7 @@ def main() -> None:
     train_step_s, train_step_cpu_s = float(np.median(durations[1:])), float(np.median(cpu_times[1:]))
     peak_rss_gib = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20  # Linux: KiB
 
+    torch.set_num_threads(args.inference_threads)
     policy.reset()
     durations = []
     for _ in range(args.rollout_steps):
@@ -146,6 +148,7 @@ def main() -> None:
                 "n_history": config.n_history,
                 "image_size": args.image_size,
                 "threads": args.threads,
+                "inference_threads": args.inference_threads,
                 "load_average_1_5_15_min_at_start": [round(x, 2) for x in load_average],
             },
             indent=2,

@@ -472,7 +472,11 @@ def block_causal_mask(
     (`step_valid` (B, T) False). None when every query may attend to every key, so that attention runs
     without a mask.
     """
-    step = torch.arange(step_valid.shape[1], device=step_valid.device)
+    steps = step_valid.shape[1]
+    only_last = range(steps)[query_steps] == range(steps - 1, steps)
+    if use_history and only_last and bool(step_valid.all()) and bool(instruction_mask.all()):
+        return None  # a rollout's newest step sees every key: skip building the mask
+    step = torch.arange(steps, device=step_valid.device)
     query_step = step[query_steps]
     if use_history:
         allowed = step[None, :] <= query_step[:, None]  # (Q, T)
@@ -787,7 +791,7 @@ class HiveformerPolicy(PreTrainedPolicy):
         values = torch.stack([position_loss, rotation_loss, gripper_loss, loss]).detach().tolist()  # one sync
         return loss, dict(zip(names, values, strict=True))
 
-    @torch.no_grad()
+    @torch.inference_mode()
     def predict_action_chunk(self, batch: dict) -> Tensor:
         """(B, 1, 8): the next keyframe for the newest step, using and extending the rollout history."""
         self.eval()
@@ -806,7 +810,7 @@ class HiveformerPolicy(PreTrainedPolicy):
         prediction = self.model.decode_steps(context, encoded, current, everything)  # (B, ...)
         return prediction.action().unsqueeze(1)
 
-    @torch.no_grad()
+    @torch.inference_mode()
     def select_action(self, batch: dict) -> Tensor:
         """(B, 8) = [x, y, z, qx, qy, qz, qw, open] for the current keyframe step."""
         return self.predict_action_chunk(batch)[:, 0]

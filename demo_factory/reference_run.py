@@ -1,0 +1,129 @@
+"""The reference run: proof, on one CPU, that a policy trained on our datasets succeeds closed loop.
+
+    python -m demo_factory.reference_run [--out outputs/reference] [--steps 1500] ...   (or `make reference`)
+
+The whole chain with the real components and the commands a user runs: `demo-factory generate`
+(push_buttons keyframe demonstrations of a few train variations, plus test-variation episodes for
+the unseen splits) → `demo-factory convert` → `lerobot-train --policy.type=hiveformer` →
+`demo-factory eval` on new scene seeds, per split. Every stage writes into its own folder under
+--out and is skipped when that folder is complete, so an interrupted run resumes where it stopped.
+At the end it prints the results table (also `OUT/eval/results.md`, `results.json`, `results.png`)
+and writes `OUT/reference_run.json` (configuration, stage wall times, success rates).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+BIN = Path(sys.executable).parent
+# Seen variations: push_buttons train ids (the HiveFormer paper's numbering) of 2 and 3 buttons.
+DEFAULT_VARIATIONS = ("8", "24", "0", "1")
+# The CPU configuration: camera size, batch, steps, instruction encoder.
+REFERENCE_IMAGE_SIZE = 64
+REFERENCE_BATCH_SIZE = 16
+REFERENCE_STEPS = 1500
+REFERENCE_TEXT_ENCODER = "one_hot"
+
+
+def train_command(dataset_root: Path, output_dir: Path, steps: int = REFERENCE_STEPS,
+                  batch_size: int = REFERENCE_BATCH_SIZE, text_encoder: str = REFERENCE_TEXT_ENCODER,
+                  log_freq: int = 50) -> list[str]:
+    """`lerobot-train` of HiveFormer on CPU in the reference configuration (no attention dropout: on CPU
+    it forces PyTorch's unfused attention; one loader worker beside the two training threads)."""
+    return [str(BIN / "lerobot-train"), "--policy.type=hiveformer", "--dataset.repo_id=local/reference_train",
+            f"--dataset.root={dataset_root}", "--policy.device=cpu", "--policy.push_to_hub=false",
+            f"--policy.text_encoder={text_encoder}", "--policy.attention_dropout=0", f"--steps={steps}",
+            f"--batch_size={batch_size}", "--num_workers=1", f"--save_freq={steps}", f"--log_freq={log_freq}",
+            "--wandb.enable=false", f"--output_dir={output_dir}"]
+
+
+def run(command: list[str], log: Path) -> None:
+    """Run one stage's command, its output teed to a log file; stop the run if it fails."""
+    print("$ " + " ".join(command), flush=True)
+    with log.open("w") as out:
+        process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, bufsize=1)
+        for line in process.stdout:
+            out.write(line)
+            shown = line.rstrip().split("\r")[-1]  # a progress bar's last state
+            if shown and not shown.startswith("Map"):
+                print("  " + shown[-200:], flush=True)
+        if process.wait() != 0:
+            raise SystemExit(f"reference run: stage failed ({command[0]} exited {process.returncode}); see {log}")
+
+
+def stage(name: str, done: Path, timings: dict, command: list[str], out: Path) -> None:
+    """Run a stage unless `done` exists (resume); record its wall time."""
+    if done.exists():
+        print(f"[{name}] already done ({done}), skipped", flush=True)
+        return
+    began = time.time()
+    run(command, out / f"{name}.log")
+    timings[name] = round(time.time() - began, 1)
+    print(f"[{name}] {timings[name]:.0f} s", flush=True)
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m demo_factory.reference_run", description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--out", type=Path, default=Path("outputs/reference"), help="run folder (resumed if present)")
+    parser.add_argument("--variation", action="append", help="seen push_buttons variation id or colour sequence "
+                        f"(repeatable; default: {', '.join(DEFAULT_VARIATIONS)})")
+    parser.add_argument("--episodes-per-variation", type=int, default=25, help="training episodes per seen variation")
+    parser.add_argument("--test-episodes", type=int, default=20, help="episodes of test variations (unseen splits)")
+    parser.add_argument("--image-size", type=int, default=REFERENCE_IMAGE_SIZE,
+                        help="camera size in pixels (multiple of 16)")
+    parser.add_argument("--steps", type=int, default=REFERENCE_STEPS, help="lerobot-train steps")
+    parser.add_argument("--batch-size", type=int, default=REFERENCE_BATCH_SIZE)
+    parser.add_argument("--text-encoder", default=REFERENCE_TEXT_ENCODER, help="HiveFormer instruction encoder")
+    parser.add_argument("--eval-episodes", type=int, default=40, help="evaluation episodes per split")
+    parser.add_argument("--workers", type=int, default=2, help="generation processes")
+    args = parser.parse_args(argv)
+    variations = args.variation or list(DEFAULT_VARIATIONS)
+    out = args.out
+    out.mkdir(parents=True, exist_ok=True)
+    timings: dict = {}
+    began = time.time()
+
+    raw, dataset, train, evaluation = out / "raw", out / "dataset", out / "train", out / "eval"
+    generate = [str(BIN / "demo-factory"), "generate", "--task", "push_buttons", "--image-size", str(args.image_size),
+                "--workers", str(args.workers)]
+    stage("generate_train", raw / "train" / ".complete", timings,
+          generate + ["--split", "train", *[f"--variation={v}" for v in variations],
+                      "--episodes-per-variation", str(args.episodes_per_variation), "--out", str(raw / "train")], out)
+    (raw / "train" / ".complete").touch()
+    stage("generate_test", raw / "test" / ".complete", timings,
+          generate + ["--split", "test", "--episodes", str(args.test_episodes), "--seed", "1",
+                      "--out", str(raw / "test")], out)
+    (raw / "test" / ".complete").touch()
+    if not (dataset / "train").exists():
+        shutil.rmtree(dataset, ignore_errors=True)
+    stage("convert", dataset / "train", timings,
+          [str(BIN / "demo-factory"), "convert", "--in", str(raw), "--out", str(dataset), "--repo-id",
+           "local/reference", "--val-ratio", "0", "--no-progress"], out)
+    checkpoint = train / "checkpoints" / "last" / "pretrained_model"
+    if not checkpoint.exists():
+        shutil.rmtree(train, ignore_errors=True)
+    stage("train", checkpoint, timings,
+          train_command(dataset / "train", train, args.steps, args.batch_size, args.text_encoder), out)
+    stage("eval", evaluation / "results.json", timings,
+          [str(BIN / "demo-factory"), "eval", "--policy.path", str(checkpoint), "--dataset", str(dataset),
+           "--episodes", str(args.eval_episodes), "--out", str(evaluation), "--overwrite"], out)
+
+    results = json.loads((evaluation / "results.json").read_text())
+    summary = {"configuration": vars(args) | {"out": str(out), "variations": variations},
+               "stage_seconds": timings, "wall_seconds_this_invocation": round(time.time() - began, 1),
+               "results": results}
+    (out / "reference_run.json").write_text(json.dumps(summary, indent=2, default=str) + "\n")
+    print((evaluation / "results.md").read_text())
+    print(f"reference run: {summary['wall_seconds_this_invocation']:.0f} s; figures in {out / 'reference_run.json'}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
