@@ -15,7 +15,7 @@ install: $(STAMP)
 $(STAMP): pyproject.toml $(PLUGIN)/pyproject.toml
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --upgrade pip
-	$(BIN)/python -m pip install --quiet -e ".[test,ray]" -e $(PLUGIN)
+	$(BIN)/python -m pip install --quiet -e ".[test,ray]" -e "$(PLUGIN)[minilm]"
 	touch $(STAMP)
 
 # The main job on a small default: expert episodes of both splits → MCAP → LeRobot datasets.

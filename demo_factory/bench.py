@@ -226,18 +226,6 @@ def _history_items_per_second(root: Path, n_history: int, items: int) -> dict:
             "speedup": rates["plugin"] / rates["stock"]}
 
 
-def _train_log_timings(log: str) -> dict:
-    """Median update and data seconds per step over lerobot-train's log lines, the first one left out."""
-    import re
-
-    updates = [float(x) for x in re.findall(r"updt_s:([0-9.]+)", log)][1:]
-    data = [float(x) for x in re.findall(r"data_s:([0-9.]+)", log)][1:]
-    if not updates:
-        return {"error": "no training log lines"}
-    update_s, data_s = float(np.median(updates)), float(np.median(data))
-    return {"updt_s": update_s, "data_s": data_s, "data_share_of_step": data_s / (update_s + data_s)}
-
-
 def bench_hiveformer_training(episodes: int, train_steps: int) -> dict:
     """HiveFormer's data path and a real `lerobot-train` run in the reference run's CPU configuration.
 
@@ -247,7 +235,7 @@ def bench_hiveformer_training(episodes: int, train_steps: int) -> dict:
     one-hot instructions, one loader worker) on a dataset generated at that size.
     """
     from demo_factory.convert.converter import ConvertOptions, convert
-    from demo_factory.reference_run import train_command
+    from demo_factory.reference_run import train_command, train_log_timings
 
     figures = {}
     with tempfile.TemporaryDirectory() as folder:
@@ -266,7 +254,7 @@ def bench_hiveformer_training(episodes: int, train_steps: int) -> dict:
             figures["lerobot_train"] = {"error": result.stderr.strip().splitlines()[-1] if result.stderr else "failed"}
         else:
             figures["lerobot_train"] = {"command": " ".join(command[1:]), "image_size": REFERENCE_IMAGE_SIZE,
-                                        **_train_log_timings(result.stdout + result.stderr)}
+                                        **train_log_timings(result.stdout + result.stderr)}
     return figures
 
 

@@ -15,7 +15,9 @@ from __future__ import annotations
 
 import argparse
 import json
+import re
 import shutil
+import statistics
 import subprocess
 import sys
 import time
@@ -41,6 +43,17 @@ def train_command(dataset_root: Path, output_dir: Path, steps: int = REFERENCE_S
             f"--policy.text_encoder={text_encoder}", "--policy.attention_dropout=0", f"--steps={steps}",
             f"--batch_size={batch_size}", "--num_workers=1", f"--save_freq={steps}", f"--log_freq={log_freq}",
             "--wandb.enable=false", f"--output_dir={output_dir}"]
+
+
+def train_log_timings(log: str) -> dict:
+    """Median update and data-loading seconds per step over lerobot-train's log lines (the first, with
+    the start-up, left out) and the share of the step spent waiting for data."""
+    updates = [float(x) for x in re.findall(r"updt_s:([0-9.]+)", log)][1:]
+    data = [float(x) for x in re.findall(r"data_s:([0-9.]+)", log)][1:]
+    if not updates:
+        return {"error": "no training log lines"}
+    update_s, data_s = statistics.median(updates), statistics.median(data)
+    return {"updt_s": update_s, "data_s": data_s, "data_share_of_step": data_s / (update_s + data_s)}
 
 
 def run(command: list[str], log: Path) -> None:
@@ -116,8 +129,9 @@ def main(argv=None) -> int:
            "--episodes", str(args.eval_episodes), "--out", str(evaluation), "--overwrite"], out)
 
     results = json.loads((evaluation / "results.json").read_text())
+    train_log = out / "train.log"
     summary = {"configuration": vars(args) | {"out": str(out), "variations": variations},
-               "stage_seconds": timings, "wall_seconds_this_invocation": round(time.time() - began, 1),
+               "stage_seconds": timings, "train_step": train_log_timings(train_log.read_text() if train_log.exists() else ""), "wall_seconds_this_invocation": round(time.time() - began, 1),
                "results": results}
     (out / "reference_run.json").write_text(json.dumps(summary, indent=2, default=str) + "\n")
     print((evaluation / "results.md").read_text())

@@ -311,3 +311,19 @@ def test_optimiser_preset_is_the_authors(tiny_dataset_root):
     biases = {id(p) for name, p in policy.named_parameters() if name.endswith("bias")}
     assert {id(p) for p in plain["params"]} == norm_weights | biases
     assert len(plain["params"]) + len(decayed["params"]) == len(list(policy.parameters()))
+
+
+def test_minilm_is_a_real_pretrained_encoder_that_needs_no_download(tiny_dataset_root):
+    policy = make_tiny_policy(tiny_dataset_root, text_encoder="minilm")
+    encoder = policy.instruction_encoder
+    features, mask = encoder.encode(["press the navy button, then the teal one", "open the top drawer"])
+    assert features.shape[-1] == 384 and mask.sum(1).tolist()[1] == 6  # [CLS] open the top drawer [SEP]
+    pooled = [(f[m]).mean(0) for f, m in zip(features, mask)]
+    swapped, _ = encoder.encode(["press the teal button, then the navy one"])
+    # Pretrained: paraphrases of one task are closer to each other than to another task.
+    similar = torch.cosine_similarity(pooled[0], swapped[0].mean(0), dim=0)
+    different = torch.cosine_similarity(pooled[0], pooled[1], dim=0)
+    assert similar > 0.9 > 0.6 > different
+    batch = history_batch(tiny_dataset_root, policy.config, [2])
+    loss, _ = policy.forward(batch)
+    assert math.isfinite(loss.item())

