@@ -114,9 +114,8 @@ def _variation_text(task) -> str:
     if task is not None and task.paper_numbering is not None:
         n = task.paper_numbering
         return (f"A *variation* is an ordered {task.variation_kind} sequence. Variation ids are the HiveFormer paper's: "
-                f"the task numbers its variations exactly as the authors' RLBench fork numbers `{n.fork_task}`, so "
-                f"variation *i* here is variation *i* there (`demo-factory tasks`: {task.variation_scheme}). As in the "
-                f"paper, **train** (seen) = variations 0-{task.n_train - 1} and **test** (unseen) = variations "
+                f"the task numbers its variations exactly as the authors' RLBench fork numbers `{n.fork_task}` (the "
+                f"scheme `demo-factory tasks` names), so variation *i* here is variation *i* there. As in the paper, **train** (seen) = variations 0-{task.n_train - 1} and **test** (unseen) = variations "
                 f"{task.n_train}-{task.n_train + task.n_test - 1}. Train and val only hold seen variations; every "
                 "`test_unseen_*` split only holds unseen ones. `variation_id` (a feature) is that id.")
     if task is not None and not task.shared_split:
@@ -134,27 +133,30 @@ def _variation_text(task) -> str:
 def _human_text(result: ConvertResult, task_name: str) -> tuple[str, str]:
     """Where the human-written instructions come from, how many there are, and their licence."""
     if result.human_file is None:
-        return "no human-instruction file was given for this task.", ""
+        return ("not written here: it needs one task and a file of human-written instructions for it "
+                "(push_buttons and tower ship the HiveFormer paper's).", "")
     rows, blank = sentence_rows(result.human_rows or [])
     per_variation = Counter(Counter(r.variation_id for r in rows).values())
-    spread = ", ".join(f"{n} for {k} variation{'s' * (k != 1)}" for n, k in sorted(per_variation.items()))
-    counts = (f"{len(rows)} sentences for {task_name} covering {sum(per_variation.values())} test variations "
-              f"({spread} per variation)")
+    spread = ", ".join(f"{n} sentence{'s' * (n != 1)} for {k} variation{'s' * (k != 1)}"
+                       for n, k in sorted(per_variation.items()))
+    counts = f"{len(rows)} sentences for {task_name} covering {sum(per_variation.values())} test variations ({spread})"
     if blank:
         counts += (f"; {len(blank)} more row{'s' * (len(blank) != 1)} with an empty sentence (variation "
                    f"{', '.join(str(r.variation_id) for r in blank)}) cannot instruct an episode and "
                    f"{'are' if len(blank) > 1 else 'is'} left out")
+    cycling = ("Episodes of a variation cycle through its rows; when a variation has more rows than episodes, "
+               "episodes are repeated so that every row is used.")
     if Path(result.human_file).resolve() == hiveformer_annotations().resolve():
         return (f"the HiveFormer paper's human-written instructions: `annotations.json` from the authors' repository "
                 f"(github.com/guhur/hiveformer), shipped unchanged with demo-factory; people wrote them for the "
                 f"paper's unseen test variations (ids 100-199). {counts}; sentences kept exactly as written, typos "
-                "included.",
-                "The human-written instructions of `test_unseen_human` are the HiveFormer authors' `annotations.json`, "
+                f"included. {cycling}",
+                " The human-written instructions of `test_unseen_human` are the HiveFormer authors' `annotations.json`, "
                 "MIT licence, Copyright (c) 2022 guhur (the notice ships beside the file in "
                 "`demo_factory/instructions/data/hiveformer/`).")
     return (f"sentences from `{Path(result.human_file).name}`, a file supplied at conversion "
-            f"(`--human-instructions`): {counts}.",
-            f"The human-written instructions of `test_unseen_human` come from `{Path(result.human_file).name}` "
+            f"(`--human-instructions`): {counts}. {cycling}",
+            f" The human-written instructions of `test_unseen_human` come from `{Path(result.human_file).name}` "
             "under that file's own terms.")
 
 
@@ -194,7 +196,7 @@ def render_card(result: ConvertResult, template: Path = TEMPLATE) -> str:
     assignment = result.human_assignment
     human_note = ""
     if assignment is not None:
-        human_note = (f"Rows used: {len({id(r) for _, r in assignment.pairs})}; rows of variations without "
+        human_note = (f" Rows used: {len({id(r) for _, r in assignment.pairs})}; rows of variations without "
                       f"recordings: {len(assignment.rows_without_episodes)}; test episodes of variations without "
                       f"rows (left out of this split): {len(assignment.episodes_without_rows)}.")
     train = next((s for s in result.splits if s.name == "train"), result.splits[0])

@@ -83,8 +83,11 @@ class Task(ABC):
         """How the variation ids and the splits are chosen, in one line (for `demo-factory tasks` and cards)."""
         if self.paper_numbering is not None:
             n = self.paper_numbering
-            return (f"HiveFormer paper ids (the authors' RLBench fork, {n.fork_task}): train 0-{self.n_train - 1}, "
-                    f"test {self.n_train}-{self.n_train + self.n_test - 1}")
+            scheme = (f"HiveFormer paper ids (the authors' RLBench fork, {n.fork_task}): train 0-{self.n_train - 1}, "
+                      f"test {self.n_train}-{self.n_train + self.n_test - 1}")
+            if n.total < len(self.variations):
+                scheme += f"; {n.total}-{len(self.variations) - 1}: sequences the fork does not use"
+            return scheme
         if self.shared_split:
             return "every variation in both splits"
         return f"dealt at random (seed {self.split_seed})"
