@@ -24,8 +24,9 @@ import time
 from pathlib import Path
 
 BIN = Path(sys.executable).parent
-# Seen variations: push_buttons train ids (the HiveFormer paper's numbering) of 2 and 3 buttons.
-DEFAULT_VARIATIONS = ("8", "24", "0", "1")
+# Seen variations, one to three buttons: 205 (maroon) is past the paper's 0-199 (its train ids have no
+# one-button variation); 8, 24 (two buttons) and 0, 1 (three) are paper train variations.
+DEFAULT_VARIATIONS = ("205", "8", "24", "0", "1")
 # The CPU configuration: camera size, batch, steps, instruction encoder.
 REFERENCE_IMAGE_SIZE = 64
 REFERENCE_BATCH_SIZE = 16

@@ -182,3 +182,36 @@ def test_generate_then_convert_gives_exactly_the_papers_sentences(tmp_path):
     assert "HiveFormer paper's human-written instructions" in card and "MIT licence" in card
     assert "62 sentences for push_buttons covering 51 test variations" in card
     assert "train** (seen) = variations 0-99" in card
+
+
+def old_numbering_dataset(root):
+    """A converted split folder as demo-factory wrote it before the paper's numbering (format 1)."""
+    meta = root / "train" / "meta"
+    meta.mkdir(parents=True)
+    provenance = {"task": "push_buttons", "episodes": [{"variation_id": 0, "instruction": "press navy"}]}
+    meta.joinpath("info.json").write_text(json.dumps({"codebase_version": "v3.0", "demo_factory": provenance}))
+    return root
+
+
+def test_eval_and_publish_refuse_datasets_of_the_old_numbering(tmp_path, capsys):
+    from demo_factory.cli import main
+    from demo_factory.publish.plan import PublishError, find_splits
+
+    dataset = old_numbering_dataset(tmp_path / "old")
+    assert main(["eval", "--expert", "--dataset", str(dataset), "--out", str(tmp_path / "eval")]) == 2
+    assert "numbers variations the old way" in capsys.readouterr().err
+    assert not (tmp_path / "eval").exists()
+    with pytest.raises(PublishError, match="numbers variations the old way"):
+        find_splits(dataset)
+
+
+def test_variations_past_the_papers_ids_may_train_but_test_ones_may_not():
+    from demo_factory.tasks import get_task
+
+    task = get_task("push_buttons")
+    extra = task.parse_variation("205")
+    assert extra.colours == ("maroon",) and extra not in task.split_variations("test")
+    task.check_split_membership(extra, "train")  # an extra training variation: accepted
+    task.check_split_membership(extra, "test")  # or a further unseen one
+    with pytest.raises(ValueError, match="leak"):
+        task.check_split_membership(task.parse_variation("100"), "train")

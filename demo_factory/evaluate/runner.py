@@ -9,6 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
+from demo_factory.convert.converter import ConvertError, check_dataset_provenance
 from demo_factory.evaluate.env import EvalEpisode, KeyframeEnv, evaluation_seed
 from demo_factory.generate import library_versions
 from demo_factory.record import FORMAT_VERSION, EpisodeInfo, EpisodeWriter, Keyframe
@@ -28,9 +29,10 @@ def split_episodes(dataset_split_root: Path, split: str, count: int, base_seed: 
     info_path = dataset_split_root / "meta" / "info.json"
     if not info_path.is_file():
         raise FileNotFoundError(f"{dataset_split_root}: not a converted split (no meta/info.json)")
-    provenance = json.loads(info_path.read_text()).get("demo_factory")
-    if not provenance:
-        raise ValueError(f"{dataset_split_root}: not a demo-factory dataset (no 'demo_factory' in meta/info.json)")
+    try:
+        provenance = check_dataset_provenance(json.loads(info_path.read_text()).get("demo_factory"), dataset_split_root)
+    except ConvertError as error:
+        raise ValueError(str(error)) from None
     task = provenance["task"]
     pairs = sorted({(e["variation_id"], e["instruction"]) for e in provenance["episodes"]})
     return [

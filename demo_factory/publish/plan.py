@@ -14,6 +14,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from demo_factory.convert.card import CONTACT_SHEET, hub_card
+from demo_factory.convert.converter import ConvertError, check_dataset_provenance
 from demo_factory.convert.splits import SPLITS
 
 CARD = "README.md"
@@ -101,6 +102,10 @@ def find_splits(dataset: Path) -> dict[str, Path]:
         if info.get("codebase_version") != "v3.0":
             raise PublishError(f"{root} is a LeRobot dataset of format {info.get('codebase_version')!r}; "
                                "only v3.0 (LeRobot 0.4) is published")
+        try:
+            check_dataset_provenance(info.get("demo_factory"), root)
+        except ConvertError as error:
+            raise PublishError(str(error)) from None
     order = list(SPLITS)
     return {n: found[n] for n in sorted(found, key=lambda n: (order.index(n) if n in order else len(order), n))}
 
