@@ -32,16 +32,20 @@ REFERENCE_IMAGE_SIZE = 64
 REFERENCE_BATCH_SIZE = 16
 REFERENCE_STEPS = 1500
 REFERENCE_TEXT_ENCODER = "one_hot"
+# Keyframes of history: 10 holds a whole push_buttons episode (at most 10 keyframes), as the authors
+# feed whole episodes; with fewer, windows that slide past the episode start look alike.
+REFERENCE_HISTORY = 10
 
 
 def train_command(dataset_root: Path, output_dir: Path, steps: int = REFERENCE_STEPS,
                   batch_size: int = REFERENCE_BATCH_SIZE, text_encoder: str = REFERENCE_TEXT_ENCODER,
-                  log_freq: int = 50) -> list[str]:
+                  n_history: int = REFERENCE_HISTORY, log_freq: int = 50) -> list[str]:
     """`lerobot-train` of HiveFormer on CPU in the reference configuration (no attention dropout: on CPU
     it forces PyTorch's unfused attention; one loader worker beside the two training threads)."""
     return [str(BIN / "lerobot-train"), "--policy.type=hiveformer", "--dataset.repo_id=local/reference_train",
             f"--dataset.root={dataset_root}", "--policy.device=cpu", "--policy.push_to_hub=false",
-            f"--policy.text_encoder={text_encoder}", "--policy.attention_dropout=0", f"--steps={steps}",
+            f"--policy.text_encoder={text_encoder}", "--policy.attention_dropout=0",
+            f"--policy.n_history={n_history}", f"--steps={steps}",
             f"--batch_size={batch_size}", "--num_workers=1", f"--save_freq={steps}", f"--log_freq={log_freq}",
             "--wandb.enable=false", f"--output_dir={output_dir}"]
 
@@ -95,6 +99,7 @@ def main(argv=None) -> int:
     parser.add_argument("--steps", type=int, default=REFERENCE_STEPS, help="lerobot-train steps")
     parser.add_argument("--batch-size", type=int, default=REFERENCE_BATCH_SIZE)
     parser.add_argument("--text-encoder", default=REFERENCE_TEXT_ENCODER, help="HiveFormer instruction encoder")
+    parser.add_argument("--n-history", type=int, default=REFERENCE_HISTORY, help="HiveFormer keyframes of history")
     parser.add_argument("--eval-episodes", type=int, default=40, help="evaluation episodes per split")
     parser.add_argument("--workers", type=int, default=2, help="generation processes")
     args = parser.parse_args(argv)
@@ -124,7 +129,7 @@ def main(argv=None) -> int:
     if not checkpoint.exists():
         shutil.rmtree(train, ignore_errors=True)
     stage("train", checkpoint, timings,
-          train_command(dataset / "train", train, args.steps, args.batch_size, args.text_encoder), out)
+          train_command(dataset / "train", train, args.steps, args.batch_size, args.text_encoder, args.n_history), out)
     stage("eval", evaluation / "results.json", timings,
           [str(BIN / "demo-factory"), "eval", "--policy.path", str(checkpoint), "--dataset", str(dataset),
            "--episodes", str(args.eval_episodes), "--out", str(evaluation), "--overwrite"], out)
