@@ -206,7 +206,7 @@ def test_card_lists_splits_features_and_how_to_train(converted):
     assert "| `test_unseen_human` | `me/push_buttons_test_unseen_human` | 4 |" in card
     assert "`observation.calibration.wrist`" in card
     assert "sentences from `human.jsonl`, a file supplied at conversion (`--human-instructions`): 4 sentences" in card
-    assert "lerobot-train --policy.type=act" in card and "--policy.pretrained_backbone_weights=null" in card
+    assert "lerobot-train --policy.type=hiveformer" in card  # keyframes; ACT needs a dense export (test_dense)
     assert "guhur2022hiveformer" in card and "james2020rlbench" in card and "cadene2024lerobot" in card
     assert "planned transition: mean 2.00, max 3" in card
 

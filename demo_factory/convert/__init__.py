@@ -8,10 +8,18 @@ from demo_factory.convert.converter import (
     check_dataset_provenance,
     convert,
 )
-from demo_factory.convert.features import dataset_features, pack_depth, unpack_depth, world_points
+from demo_factory.convert.features import (
+    ACTION_SPACES,
+    dataset_features,
+    pack_depth,
+    robot_action,
+    unpack_depth,
+    world_points,
+)
 from demo_factory.convert.splits import SPLITS, split_repo_id
 
 __all__ = [
+    "ACTION_SPACES",
     "DATASET_FORMAT_VERSION",
     "SPLITS",
     "ConvertError",
@@ -21,6 +29,7 @@ __all__ = [
     "convert",
     "dataset_features",
     "pack_depth",
+    "robot_action",
     "split_repo_id",
     "unpack_depth",
     "world_points",

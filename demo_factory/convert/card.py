@@ -13,9 +13,16 @@ from typing import TYPE_CHECKING
 import cv2
 import numpy as np
 
-from demo_factory.convert.features import ACTION_NAMES, CALIBRATION_NAMES, KEYFRAME_FPS, STATE_NAMES
+from demo_factory.convert.features import (
+    ACTION_NAMES,
+    CALIBRATION_NAMES,
+    DEFAULT_CONTROL_FPS,
+    JOINT_ACTION_NAMES,
+    KEYFRAME_FPS,
+    STATE_NAMES,
+)
 from demo_factory.convert.splits import SplitPlan, SourceEpisode
-from demo_factory.convert.usage import act_train_args, act_train_command, load_command
+from demo_factory.convert.usage import act_chunk, gate_command, load_command, quote, train_args, train_policy
 from demo_factory.instructions import COLOUR_SYNONYMS, hiveformer_annotations
 from demo_factory.instructions.human import sentence_rows
 from demo_factory.record import read_episode
@@ -91,7 +98,21 @@ def _stats(sources: list[SourceEpisode], invalid: int, generation: list[dict]) -
     return "\n".join(lines)
 
 
-def _feature_rows(cameras: list[str], image_size: tuple[int, int]) -> str:
+def action_row(action_space: str | None) -> str:
+    """The card's table row of the ``action`` feature for a keyframe export (``None``) or a dense one."""
+    if action_space is None:
+        return (f"| `action` | float32 | (8,) | {', '.join(ACTION_NAMES)}: the next keyframe's target pose and gripper "
+                "command (the last keyframe repeats its own) |")
+    if action_space == "joints":
+        return (f"| `action` | float32 | (8,) | {', '.join(JOINT_ACTION_NAMES)}: action space `joints`, the 7 arm joint "
+                "positions (rad) and the gripper command (open 1 / closed 0) at the next control tick, for the "
+                "joints' position controllers (the last frame repeats its own state) |")
+    return (f"| `action` | float32 | (8,) | {', '.join(ACTION_NAMES)}: action space `ee`, the grasp-frame pose (world = "
+            "robot base frame, metres; quaternion sign chosen with qx >= 0) and the gripper command (open 1 / closed 0) "
+            "at the next control tick, reached through inverse kinematics (the last frame repeats its own state) |")
+
+
+def _feature_rows(cameras: list[str], image_size: tuple[int, int], action_space: str | None = None) -> str:
     h, w = image_size
     rows = []
     for c in cameras:
@@ -100,7 +121,7 @@ def _feature_rows(cameras: list[str], image_size: tuple[int, int]) -> str:
         rows.append(f"| `observation.calibration.{c}` | float32 | (20,) | fx, fy, cx, cy, world-from-camera 4×4 row-major (OpenCV axes) |")
     rows += [
         f"| `observation.state` | float32 | (15,) | {', '.join(STATE_NAMES)} (gripper grasp frame, world = robot base frame, metres; open 1 / closed 0; joints in rad) |",
-        f"| `action` | float32 | (8,) | {', '.join(ACTION_NAMES)}: the next keyframe's target pose and gripper command (the last keyframe repeats its own) |",
+        action_row(action_space),
         "| `variation_id` | int64 | (1,) | the variation's id in the task's enumeration |",
         "| `keyframe_index` | int64 | (1,) | the keyframe reached at (or last reached before) this frame; 0 = initial state |",
         "| `timestamp`, `frame_index`, `episode_index`, `index`, `task_index` | | | LeRobot's own |",
@@ -201,6 +222,11 @@ def render_card(result: ConvertResult, template: Path = TEMPLATE) -> str:
                       f"rows (left out of this split): {len(assignment.episodes_without_rows)}.")
     train = next((s for s in result.splits if s.name == "train"), result.splits[0])
     root = Path(result.out) / train.name
+    policy = train_policy(result.granularity)
+    train_command = quote(train_args(result.granularity, train.repo_id, root, result.cameras, result.image_size,
+                                     result.fps, train.shortest_episode, Path(f"outputs/train/{policy}_{result.task}")))
+    if result.granularity == "dense":
+        train_command += "\n" + gate_command(root, act_chunk(train.shortest_episode, result.fps)[0])
     invalid = ""
     if result.invalid:
         invalid = "## Recordings left out\n\n" + "\n".join(f"- `{p.name}`: {why}" for p, why in result.invalid)
@@ -213,6 +239,7 @@ def render_card(result: ConvertResult, template: Path = TEMPLATE) -> str:
         "configs": configs,
         "repo_id": result.repo_id,
         "granularity": result.granularity,
+        "granularity_tag": "keyframes" if result.granularity == "keyframe" else "dense",
         "task_text": task_text,
         "variation_text": _variation_text(task),
         "split_rows": split_rows,
@@ -221,21 +248,25 @@ def render_card(result: ConvertResult, template: Path = TEMPLATE) -> str:
         "human_text": human_text,
         "human_licence": human_licence,
         "human_note": human_note,
-        "frame_description": ("one observation per keyframe (keyframe 0 = the initial state)"
-                              if result.granularity == "keyframe" else "the dense frames at their recorded rate"),
+        "frame_description": _frame_description(result),
         "fps": result.fps,
         "fps_note": (f"nominal: keyframes are not evenly spaced in time; timestamps are frame_index / {KEYFRAME_FPS}"
-                     if result.granularity == "keyframe" else "the recording's dense rate"),
-        "feature_rows": _feature_rows(result.cameras, result.image_size),
+                     if result.granularity == "keyframe" else
+                     f"the control rate: frames are evenly spaced in simulated time, one per control tick; "
+                     f"{DEFAULT_CONTROL_FPS} fps is the rate recommended for these tasks: at 10 fps the ticks miss "
+                     "the deepest point of brief presses, and even the expert's own actions fail to press"),
+        "feature_rows": _feature_rows(result.cameras, result.image_size, result.action_space),
         "n_cameras": len(result.cameras),
         "width": result.image_size[1],
         "height": result.image_size[0],
         "camera_list": ", ".join(f"`{c}`" for c in result.cameras),
         "generation_stats": _stats(result.sources, len(result.invalid), result.generation_summaries),
         "load_command": load_command(train.repo_id, root),
-        "train_command": act_train_command(train.repo_id, root, result.cameras, result.image_size,
-                                           Path("outputs/train/act_" + result.task)),
-        "eval_command": eval_command(result.out, result.task),
+        "train_command": train_command,
+        "train_text": training_note(policy, result.cameras, result.image_size, result.fps,
+                                    act_chunk(train.shortest_episode, result.fps) if policy == "act" else None,
+                                    train.shortest_episode),
+        "eval_command": eval_command(result.out, result.task, policy),
         "regenerate": "\n".join([
             *(g["command"] for g in result.generation_summaries if g.get("command")),
             *([] if result.generation_summaries else
@@ -247,10 +278,43 @@ def render_card(result: ConvertResult, template: Path = TEMPLATE) -> str:
     return Template(template.read_text(encoding="utf-8")).substitute(mapping)
 
 
-def eval_command(dataset: Path | str, task: str) -> str:
+def _frame_description(result: ConvertResult) -> str:
+    if result.granularity == "keyframe":
+        return "one observation per keyframe (keyframe 0 = the initial state)"
+    kept = (f"one in {round(result.recorded_fps / result.fps)} of the dense frames recorded at {result.recorded_fps:g} fps"
+            if abs(result.recorded_fps - result.fps) > 1e-6 else f"the dense frames recorded at {result.fps} fps")
+    return (f"one observation per control tick ({kept}) from the start of the episode to the end of its final "
+            f"settling, keyframes or not; the action space is `{result.action_space}`")
+
+
+def training_note(policy: str, cameras: list[str], image_size: tuple[int, int], fps: int = KEYFRAME_FPS,
+                  chunk: tuple[int, int] | None = None, shortest_episode: int | None = None) -> str:
+    """What the suggested ``lerobot-train`` line does, for the card and the Hub cards."""
+    height, width = image_size
+    if policy == "hiveformer":
+        return ("The `lerobot-train` line trains HiveFormer (the `lerobot_policy_hiveformer` plugin that ships with "
+                "demo-factory) on the train split's keyframes on a CPU, offline: a one-hot instruction encoder "
+                "(`--policy.text_encoder=clip` is the paper's frozen CLIP, loaded from the Hugging Face Hub), no Hub "
+                "push, no Weights & Biases. Keyframe episodes are far shorter than the action chunks of ACT or "
+                "diffusion policies: train those on a dense export (`demo-factory convert --granularity dense`, from "
+                "recordings generated with `--dense-fps`).")
+    chunk_text = ""
+    if chunk is not None:
+        size, steps = chunk
+        shortest = f", never more than the shortest train episode's {shortest_episode} frames" if shortest_episode else ""
+        chunk_text = (f" ACT predicts a chunk of {size} actions ({size / fps:g} s at {fps} fps{shortest}) and executes "
+                      f"{steps} of them before it looks again; `lerobot-doctor gate` (a third-party checker, "
+                      "`pip install lerobot-doctor`) checks the split against that chunk.")
+    return ("The `lerobot-train` line trains LeRobot's built-in ACT policy on the train split on a CPU, offline: no "
+            "pretrained backbone download, no Hub push, no Weights & Biases, and ACT's inputs restricted to the "
+            f"{len(cameras)} RGB cameras ({height}×{width}) and the state (it would otherwise take the packed depth "
+            f"images for more cameras).{chunk_text}")
+
+
+def eval_command(dataset: Path | str, task: str, policy: str = "act") -> str:
     """Closed-loop evaluation of a trained checkpoint on every split's variations and instructions."""
-    return (f"demo-factory eval --policy.path outputs/train/act_{task}/checkpoints/last/pretrained_model "
-            f"--dataset {dataset} --out outputs/eval/act_{task}")
+    return (f"demo-factory eval --policy.path outputs/train/{policy}_{task}/checkpoints/last/pretrained_model "
+            f"--dataset {dataset} --out outputs/eval/{policy}_{task}")
 
 
 # -- the card of one split's Hub repository -----------------------------------------------------
@@ -295,25 +359,29 @@ def hub_card(card_text: str, repo_id: str, split: str, splits: list[str], camera
     others = ", ".join(f"[`{s}`]({HUB_URL}{repo_id}_{s})" for s in splits if s != split) or "none"
     here = (f"**This repository holds the `{split}` split** as a LeRobot v3.0 dataset (tag `v3.0`). "
             f"The dataset's other splits are repositories of their own: {others}.")
-    height, width = image_size
-    args = act_train_args(this, Path("."), cameras, image_size, Path(f"outputs/train/act_{repo_id.split('/')[1]}"))
-    train = " ".join(shlex.quote(a) for a in args if not a.startswith("--dataset.root="))
+    sections = _sections(body)
+    load = next((s for s in sections if s and s[0] == LOAD_HEADING), [])
+    train_line = next((line for line in load if line.startswith("lerobot-train ")), "")
+    policy = re.search(r"--policy\.type=(\w+)", train_line)
+    chunk = re.search(r"--policy\.chunk_size=(\d+) --policy\.n_action_steps=(\d+)", train_line)
+    fps = re.search(r"`fps` = (\d+)", body)
+    args = [a for a in shlex.split(train_line) if not a.startswith("--dataset.root=")]
+    train = quote([f"--dataset.repo_id={this}" if a.startswith("--dataset.repo_id=") else a for a in args])
     code = f'from lerobot.datasets.lerobot_dataset import LeRobotDataset as D; print(D("{this}"))'
+    note = training_note(policy[1] if policy else "act", cameras, image_size, int(fps[1]) if fps else KEYFRAME_FPS,
+                         (int(chunk[1]), int(chunk[2])) if chunk else None)
     load_section = [
         LOAD_HEADING, "",
         "```bash",
         f"python -c {shlex.quote(code)}",
-        train,
+        *([train] if train_line else []),
         "```", "",
-        f"LeRobot downloads the split from the Hub at the `v3.0` tag (no `root` needed). The `lerobot-train` line "
-        f"trains LeRobot's built-in ACT policy on it on a CPU: no pretrained backbone download, no Hub push, no "
-        f"Weights & Biases, and ACT's inputs restricted to the {len(cameras)} RGB cameras ({height}×{width}) and "
-        "the state (it would otherwise take the packed depth images for more cameras). To evaluate a trained "
-        "policy in closed loop on every split's variations and instructions, regenerate the dataset (below) and "
-        "run `demo-factory eval --policy.path <checkpoint>/pretrained_model --dataset <converted folder> --out <folder>`.",
+        f"LeRobot downloads the split from the Hub at the `v3.0` tag (no `root` needed). {note} To evaluate a "
+        "trained policy in closed loop on every split's variations and instructions, regenerate the dataset (below) "
+        "and run `demo-factory eval --policy.path <checkpoint>/pretrained_model --dataset <converted folder> --out "
+        "<folder>`.",
         "",
     ]
-    sections = _sections(body)
     for i, section in enumerate(sections):
         heading = section[0] if section else ""
         if i == 0:

@@ -7,8 +7,8 @@ import sys
 from pathlib import Path
 
 from demo_factory.convert.converter import ConvertError, ConvertOptions, ConvertResult, convert
-from demo_factory.convert.features import GRANULARITIES
-from demo_factory.convert.usage import act_train_command, load_command
+from demo_factory.convert.features import ACTION_SPACES, DEFAULT_ACTION_SPACE, DEFAULT_CONTROL_FPS, GRANULARITIES
+from demo_factory.convert.usage import act_chunk, gate_command, load_command, quote, train_args, train_policy
 
 EXIT_USAGE = 2
 
@@ -30,7 +30,16 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     parser.add_argument("--repo-id", help="Hub repo id owner/name; each split gets owner/name_<split> "
                                           "(default: local/<name of --out>)")
     parser.add_argument("--granularity", default="keyframe", choices=GRANULARITIES,
-                        help="one frame per keyframe (default), or the recorded dense frames")
+                        help="one frame per keyframe (default; for HiveFormer), or the recorded dense frames at a "
+                             "fixed control rate (for ACT, diffusion, VLAs; generate with --dense-fps "
+                             f"{DEFAULT_CONTROL_FPS})")
+    parser.add_argument("--action-space", metavar="SPACE",
+                        help=f"dense exports only: the action of each frame, {' or '.join(ACTION_SPACES)}; joints = the 7 "
+                             "joint positions + gripper command at the next control tick, ee = the grasp-frame pose "
+                             f"(x, y, z, quaternion) + gripper command at the next tick (default: {DEFAULT_ACTION_SPACE})")
+    parser.add_argument("--fps", type=int, metavar="N",
+                        help="dense exports only: the control rate, a whole divisor of the recorded dense rate "
+                             "(every k-th dense frame is kept; default: the recorded rate)")
     parser.add_argument("--val-ratio", type=float, default=0.1,
                         help="fraction of train-variation episodes held out for val (default 0.1)")
     parser.add_argument("--human-instructions", type=Path, metavar="FILE",
@@ -51,7 +60,7 @@ def run(args: argparse.Namespace) -> int:
     """Run the sub-command; user errors print one line and return exit code 2."""
     options = ConvertOptions(
         inputs=list(args.inputs), out=args.out, repo_id=args.repo_id or f"local/{args.out.resolve().name}",
-        granularity=args.granularity, val_ratio=args.val_ratio, human_instructions=args.human_instructions,
+        granularity=args.granularity, action_space=args.action_space, fps=args.fps, val_ratio=args.val_ratio, human_instructions=args.human_instructions,
         task=args.task, skip_invalid=args.skip_invalid, overwrite=args.overwrite, progress=args.progress,
     )
     try:
@@ -65,11 +74,14 @@ def run(args: argparse.Namespace) -> int:
 
 def summary(result: ConvertResult) -> str:
     """What was written, what was left out, and how to load and train on it."""
-    lines = [f"\n{result.task}: {result.frames_written} frames written to {result.out} in {result.seconds:.1f} s "
+    export = ("keyframes" if result.granularity == "keyframe"
+              else f"dense frames at {result.fps} fps, action space {result.action_space}")
+    lines = [f"\n{result.task} ({export}): {result.frames_written} frames written to {result.out} in {result.seconds:.1f} s "
              f"({result.frames_written / max(result.seconds, 1e-9):.1f} frames/s)", ""]
-    lines.append(f"  {'split':<24}{'episodes':>9}{'frames':>8}  instructions  repo id")
+    lines.append(f"  {'split':<24}{'episodes':>9}{'frames':>8}{'shortest':>9}  instructions  repo id")
     for s in result.splits:
-        lines.append(f"  {s.name:<24}{s.episodes:>9}{s.frames:>8}  {s.instruction_source:<12}  {s.repo_id}")
+        lines.append(f"  {s.name:<24}{s.episodes:>9}{s.frames:>8}{s.shortest_episode:>9}  {s.instruction_source:<12}  "
+                     f"{s.repo_id}")
     for name, why in result.skipped_splits:
         lines.append(f"  {name:<24}  skipped: {why}")
     if result.human_assignment is not None:
@@ -87,8 +99,22 @@ def summary(result: ConvertResult) -> str:
         lines += [f"    {p}: {why}" for p, why in result.invalid]
     train = next((s for s in result.splits if s.name == "train"), result.splits[0])
     root = result.out / train.name
-    lines += ["", f"Dataset card: {result.out / 'README.md'}", "Load a split:", "  " + load_command(train.repo_id, root),
-              "Train ACT on it (CPU, offline):",
-              "  " + act_train_command(train.repo_id, root, result.cameras, result.image_size,
-                                       Path("outputs/train/act_" + result.task))]
+    lines += ["", f"Dataset card: {result.out / 'README.md'}", "Load a split:", "  " + load_command(train.repo_id, root)]
+    lines += training_lines(result, train, root)
     return "\n".join(lines)
+
+
+def training_lines(result: ConvertResult, train, root: Path) -> list[str]:
+    """The suggested ``lerobot-train`` command for this export, and for dense exports its gate check."""
+    policy = train_policy(result.granularity)
+    args = train_args(result.granularity, train.repo_id, root, result.cameras, result.image_size, result.fps,
+                      train.shortest_episode, Path(f"outputs/train/{policy}_{result.task}"))
+    if result.granularity == "keyframe":
+        return ["Train HiveFormer on it (CPU, offline; ACT and diffusion need a dense export: --granularity dense):",
+                "  " + quote(args)]
+    chunk, steps = act_chunk(train.shortest_episode, result.fps)
+    return [f"Train ACT on it (CPU, offline): chunks of {chunk} actions ({chunk / result.fps:g} s at {result.fps} fps; "
+            f"the shortest train episode has {train.shortest_episode} frames), {steps} executed per prediction:",
+            "  " + quote(args),
+            "Check it first with the third-party gate (pip install lerobot-doctor):",
+            "  " + gate_command(root, chunk)]

@@ -16,16 +16,21 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import numpy as np
 from tqdm import tqdm
 
 from demo_factory.convert.features import (
+    ACTION_SPACES,
     CALIBRATION_LAYOUT,
+    DEFAULT_ACTION_SPACE,
     DEPTH_ENCODING,
     GRANULARITIES,
     KEYFRAME_FPS,
     dataset_features,
     dataset_frame,
     episode_frames,
+    episode_items,
+    image_key,
 )
 from demo_factory.convert.splits import SourceEpisode, SplitPlan, plan_splits, split_repo_id
 from demo_factory.instructions import HumanInstruction, load_human_instructions, shipped_human_instructions
@@ -51,6 +56,8 @@ class ConvertOptions:
     out: Path
     repo_id: str
     granularity: str = "keyframe"
+    action_space: str | None = None  # dense only: "joints" (default) or "ee"; keyframe exports: None
+    fps: int | None = None  # dense only: the control rate, a divisor of the recorded dense rate (default: that rate)
     val_ratio: float = 0.1
     human_instructions: Path | None = None  # None: the file shipped for the task, if any
     task: str | None = None  # None: every task found in the inputs (several make a multi-task dataset)
@@ -67,6 +74,7 @@ class SplitSummary:
     episodes: int
     frames: int
     variations: int
+    shortest_episode: int = 0  # frames of the split's shortest episode
 
 
 @dataclass
@@ -88,6 +96,8 @@ class ConvertResult:
     seconds: float
     frames_written: int
     command: str  # the convert command line that reproduces this output
+    action_space: str | None = None  # dense exports: "joints" or "ee"
+    recorded_fps: float = 0.0  # the recordings' dense rate (dense exports)
     generation_summaries: list[dict] = field(default_factory=list)  # from the input folders
     other_tasks: dict[str, int] = field(default_factory=dict)
 
@@ -126,6 +136,14 @@ def check_options(options: ConvertOptions) -> None:
     """Refuse bad option values before any work, one line each."""
     if options.granularity not in GRANULARITIES:
         raise ConvertError(f"unknown granularity {options.granularity!r}; accepted: {', '.join(GRANULARITIES)}")
+    if options.action_space is not None and options.action_space not in ACTION_SPACES:
+        raise ConvertError(f"unknown --action-space {options.action_space!r}; accepted: {', '.join(ACTION_SPACES)}")
+    if options.granularity != "dense" and (options.action_space is not None or options.fps is not None):
+        option = "--action-space" if options.action_space is not None else "--fps"
+        raise ConvertError(f"{option} applies to --granularity dense only (a keyframe export's action is the next "
+                           "keyframe's pose and open state)")
+    if options.fps is not None and options.fps < 1:
+        raise ConvertError(f"--fps {options.fps} is out of range; accepted: a whole number of frames per second >= 1")
     if not 0.0 <= options.val_ratio < 1.0:
         raise ConvertError(f"--val-ratio {options.val_ratio} is out of range; accepted: 0 <= ratio < 1")
     owner, _, name = options.repo_id.partition("/")
@@ -168,13 +186,25 @@ def _check_episode(episode: Episode, path: Path, granularity: str) -> None:
             raise RecordingError(f"{path}: {exc}") from None
 
 
-def _source(episode: Episode, path: Path, granularity: str) -> SourceEpisode:
+def dense_stride(recorded_fps: float, fps: int | None, path: Path) -> int:
+    """Every how many recorded dense frames one becomes a dataset frame at ``fps`` (None: all of them)."""
+    if fps is None:
+        return 1
+    stride = recorded_fps / fps
+    if stride < 1 - 1e-9 or abs(stride - round(stride)) > 1e-6:
+        divisors = [f for f in range(1, int(recorded_fps) + 1) if abs(recorded_fps / f - round(recorded_fps / f)) < 1e-6]
+        raise ConvertError(f"--fps {fps} does not divide the recorded dense rate {recorded_fps:g} fps of {path.name}; "
+                           f"accepted: {', '.join(map(str, divisors)) or 'none (not a whole rate)'}")
+    return int(round(stride))
+
+
+def _source(episode: Episode, path: Path, granularity: str, stride: int = 1) -> SourceEpisode:
     info = episode.info
     attempts = Counter(a.keyframe_index for a in info.planner_attempts)
     return SourceEpisode(
         path=path, task=info.task, split=info.split, variation_id=info.variation_id,
         colours=tuple(info.variation), episode_seed=info.episode_seed, instruction=info.instruction,
-        frames=len(episode_frames(episode, granularity)),
+        frames=len(episode_frames(episode, granularity, stride)),
         keyframes=len(episode.keyframes),
         planner_attempts=tuple(attempts[k] for k in sorted(attempts)),
         exact_attempts=sum(a.status == "exact" for a in info.planner_attempts),
@@ -193,6 +223,8 @@ class _Survey:
     image_size: tuple[int, int]
     fps: int
     tasks: tuple[str, ...] = ()  # every task whose recordings are converted
+    stride: int = 1  # dense exports: every stride-th recorded dense frame is kept
+    recorded_fps: float = 0.0
 
 
 def survey(paths: list[Path], options: ConvertOptions) -> _Survey:
@@ -209,7 +241,8 @@ def survey(paths: list[Path], options: ConvertOptions) -> _Survey:
                 raise ConvertError(f"{exc} (pass --skip-invalid to leave such files out)") from None
             invalid.append((path, str(exc).removeprefix(f"{path}: ")))
             continue
-        sources.append(_source(episode, path, options.granularity))
+        stride = dense_stride(episode.info.dense_fps, options.fps, path) if options.granularity == "dense" else 1
+        sources.append(_source(episode, path, options.granularity, stride))
         info = episode.info
         layouts[path] = (tuple(info.cameras), tuple(info.image_size), info.dense_fps)
     tasks = Counter(s.task for s in sources)
@@ -242,12 +275,14 @@ def survey(paths: list[Path], options: ConvertOptions) -> _Survey:
             invalid.append((s.path, "the expert did not succeed in this episode"))
         else:
             kept.append(s)
-    fps = KEYFRAME_FPS
+    fps, stride = KEYFRAME_FPS, 1
     if options.granularity == "dense":
-        fps = int(round(dense_fps))
-        if abs(dense_fps - fps) > 1e-6 or fps <= 0:
-            raise ConvertError(f"dense rate {dense_fps} fps of {first} is not a whole number; LeRobot needs integer fps")
-    return _Survey(kept, invalid, other_tasks, task, list(cameras), image_size, fps, converted)
+        stride = dense_stride(dense_fps, options.fps, first)
+        fps = options.fps or int(round(dense_fps))
+        if abs(dense_fps / stride - fps) > 1e-6 or fps <= 0:
+            raise ConvertError(f"dense rate {dense_fps} fps of {first} is not a whole number; LeRobot needs integer fps "
+                               "(pass --fps with a whole divisor of it)")
+    return _Survey(kept, invalid, other_tasks, task, list(cameras), image_size, fps, converted, stride, dense_fps)
 
 
 def convert_command(options: ConvertOptions, task: str) -> str:
@@ -258,6 +293,10 @@ def convert_command(options: ConvertOptions, task: str) -> str:
         parts.append(f"--task {task}")
     if options.granularity != "keyframe":
         parts.append(f"--granularity {options.granularity}")
+    if options.action_space is not None:
+        parts.append(f"--action-space {options.action_space}")
+    if options.fps is not None:
+        parts.append(f"--fps {options.fps}")
     if options.val_ratio != ConvertOptions.val_ratio:
         parts.append(f"--val-ratio {options.val_ratio}")
     if options.human_instructions is not None:
@@ -282,8 +321,44 @@ def _load_human_rows(options: ConvertOptions, task: str) -> tuple[Path | None, l
     return path, rows
 
 
+class ImageMoments:
+    """Per-channel mean and standard deviation of RGB images, accumulated frame by frame in float64.
+
+    LeRobot 0.4.4 squares uint8 pixels when it computes image statistics, which wraps around: the
+    stored standard deviations come out 30-60x too small (about 0.005 instead of 0.2-0.3), and a
+    policy that normalises images by them (ACT, diffusion) sees inputs blown up as much.
+    """
+
+    def __init__(self):
+        self.count = 0
+        self.sums = np.zeros(3)
+        self.squares = np.zeros(3)
+
+    def add(self, rgb: np.ndarray) -> None:
+        pixels = rgb.reshape(-1, 3).astype(np.float64) / 255.0
+        self.count += len(pixels)
+        self.sums += pixels.sum(axis=0)
+        self.squares += (pixels ** 2).sum(axis=0)
+
+    def mean_std(self) -> tuple[np.ndarray, np.ndarray]:
+        mean = self.sums / max(self.count, 1)
+        return mean, np.sqrt(np.maximum(self.squares / max(self.count, 1) - mean ** 2, 0.0))
+
+
+def correct_image_stats(root: Path, moments: dict[str, ImageMoments]) -> None:
+    """Replace the mean and std of the RGB image features in ``meta/stats.json`` by exact ones."""
+    from lerobot.datasets.utils import load_stats, write_stats
+
+    stats = load_stats(root)
+    for key, moment in moments.items():
+        if key in stats and moment.count:
+            mean, std = moment.mean_std()
+            stats[key]["mean"], stats[key]["std"] = mean.reshape(3, 1, 1), std.reshape(3, 1, 1)
+    write_stats(stats, root)
+
+
 def write_split(plan: SplitPlan, root: Path, repo_id: str, survey_: _Survey, granularity: str,
-                progress: tqdm | None = None) -> SplitSummary:
+                progress: tqdm | None = None, action_space: str | None = None) -> SplitSummary:
     """Write one split as a LeRobot dataset at ``root`` (which must not exist)."""
     import datasets  # heavy imports (torch), only when writing
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
@@ -291,7 +366,7 @@ def write_split(plan: SplitPlan, root: Path, repo_id: str, survey_: _Survey, gra
 
     datasets.disable_progress_bars()  # one "Map" bar per episode otherwise; ours counts frames
 
-    features = dataset_features(survey_.cameras, survey_.image_size)
+    features = dataset_features(survey_.cameras, survey_.image_size, action_space)
     dataset = LeRobotDataset.create(repo_id, survey_.fps, features, root=root, use_videos=False,
                                     image_writer_threads=IMAGE_WRITER_THREADS)
     dataset.meta.info["cameras"] = survey_.cameras
@@ -299,14 +374,21 @@ def write_split(plan: SplitPlan, root: Path, repo_id: str, survey_: _Survey, gra
     dataset.meta.info["calibration_layout"] = CALIBRATION_LAYOUT
     provenance = []
     frames = 0
+    lengths = []
+    moments = {image_key(camera): ImageMoments() for camera in survey_.cameras}
     try:
         for index, planned in enumerate(plan.episodes):
             episode = read_episode(planned.source.path)
-            for frame in episode_frames(episode, granularity):
-                dataset.add_frame(dataset_frame(episode, frame, planned.instruction))
+            items = episode_items(episode, granularity, action_space, survey_.stride)
+            for frame, action in items:
+                item = dataset_frame(episode, frame, planned.instruction, action)
+                for key, moment in moments.items():
+                    moment.add(item[key])
+                dataset.add_frame(item)
                 frames += 1
                 if progress is not None:
                     progress.update(1)
+            lengths.append(len(items))
             dataset.save_episode()
             row = planned.human
             provenance.append({
@@ -316,6 +398,7 @@ def write_split(plan: SplitPlan, root: Path, repo_id: str, survey_: _Survey, gra
                 "colours": list(planned.source.colours),
                 "episode_seed": planned.source.episode_seed,
                 "instruction": planned.instruction,
+                "frames": len(items),
                 **({"task": planned.source.task} if len(survey_.tasks) > 1 else {}),
                 **({"human_instruction_line": row.line, "author": row.author, "language": row.language,
                     **({"annotation_id": row.record_id} if row.record_id else {})} if row else {}),
@@ -324,17 +407,20 @@ def write_split(plan: SplitPlan, root: Path, repo_id: str, survey_: _Survey, gra
     finally:
         dataset.stop_image_writer()
     shutil.rmtree(root / "images", ignore_errors=True)  # empty once the PNGs are embedded in the parquet files
+    correct_image_stats(root, moments)
     dataset.meta.info["demo_factory"] = {
         "format_version": DATASET_FORMAT_VERSION,
         "task": survey_.task,
         "split": plan.name,
         "instruction_source": plan.instruction_source,
         "granularity": granularity,
+        **({"action_space": action_space, "control_fps": survey_.fps, "recorded_dense_fps": survey_.recorded_fps}
+           if granularity == "dense" else {}),
         "episodes": provenance,
     }
     write_info(dataset.meta.info, root)
     return SplitSummary(plan.name, repo_id, plan.instruction_source, len(plan.episodes), frames,
-                        len({e.source.variation_id for e in plan.episodes}))
+                        len({e.source.variation_id for e in plan.episodes}), min(lengths, default=0))
 
 
 def check_dataset_provenance(provenance: dict | None, root: Path | str) -> dict:
@@ -365,6 +451,7 @@ def convert(options: ConvertOptions, log: Callable[[str], None] = print) -> Conv
     """Run a whole conversion; raises ``ConvertError`` for problems the user can fix."""
     began = time.perf_counter()
     check_options(options)
+    action_space = (options.action_space or DEFAULT_ACTION_SPACE) if options.granularity == "dense" else None
     paths = find_recordings(options.inputs)
     found = survey(paths, options)
     if len(found.tasks) == 1:
@@ -406,14 +493,14 @@ def convert(options: ConvertOptions, log: Callable[[str], None] = print) -> Conv
             for plan in to_write:
                 bar.set_postfix_str(plan.name)
                 summaries.append(write_split(plan, staging / plan.name, split_repo_id(options.repo_id, plan.name),
-                                             found, options.granularity, bar))
+                                             found, options.granularity, bar, action_space))
         result = ConvertResult(
             out=out, repo_id=options.repo_id, task=found.task, granularity=options.granularity, fps=found.fps,
             cameras=found.cameras, image_size=found.image_size, splits=summaries, skipped_splits=skipped_splits,
             invalid=found.invalid, sources=found.sources, human_file=human_file, human_assignment=assignment,
             human_rows=human_rows,
             seconds=0.0, frames_written=sum(s.frames for s in summaries), command=convert_command(options, found.task),
-            other_tasks=found.other_tasks,
+            other_tasks=found.other_tasks, action_space=action_space, recorded_fps=found.recorded_fps,
             generation_summaries=[g for g in find_generation_summaries(options.inputs) if g.get("task") in found.tasks],
         )
         from demo_factory.convert.card import write_card  # after the datasets: it reads their first frames

@@ -9,8 +9,13 @@ Per camera ``<cam>`` (the recording's cameras, e.g. left_shoulder / right_should
   transform (OpenCV axes) row-major. Per frame because the wrist camera moves.
 Robot and labels:
 - ``observation.state``  float32 (15,): gripper x, y, z, qx, qy, qz, qw, gripper_open, joint_0..joint_6.
-- ``action``             float32 (8,): the next keyframe's target x, y, z, qx, qy, qz, qw and open
-  command (the last keyframe repeats its own target).
+- ``action``             float32 (8,), by granularity and action space:
+  keyframe:       the next keyframe's target x, y, z, qx, qy, qz, qw and open command (the last
+                  keyframe repeats its own target);
+  dense, joints:  the 7 arm joint positions and the gripper command at the next control tick;
+  dense, ee:      the grasp-frame pose x, y, z, qx, qy, qz, qw (quaternion sign: qx >= 0, the
+                  hemisphere of the top-down grasp) and the gripper command at the next control tick.
+  The last frame of a dense episode repeats its own state (hold still).
 - ``variation_id``, ``keyframe_index``  int64 (1,): for breaking results down.
 - the instruction is the frame's ``task`` string.
 """
@@ -19,7 +24,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from demo_factory.record.episode import CameraObservation, Episode, Frame
+from demo_factory.record.episode import CameraObservation, Episode, Frame, RobotState
 
 KEYFRAME_FPS = 10  # nominal rate of keyframe datasets: LeRobot needs one; keyframes are not evenly timed
 POSE_NAMES = ["x", "y", "z", "qx", "qy", "qz", "qw"]
@@ -38,6 +43,14 @@ CALIBRATION_LAYOUT = {
     "unproject": "p_world = T @ [(u - cx) * z / fx, (v - cy) * z / fy, z, 1] for pixel (u=column, v=row)",
 }
 GRANULARITIES = ("keyframe", "dense")
+ACTION_SPACES = ("joints", "ee")  # of dense exports; a keyframe export's action is always the next keyframe
+DEFAULT_ACTION_SPACE = "joints"
+# The control rate recommended for the tasks (generate --dense-fps 20): presses and grasps are brief
+# straight moves, and at 10 fps the ticks often miss their deepest point: replaying the expert's own
+# 10 fps actions closed loop solved 1 of 6 push_buttons test episodes, its 20 fps actions 6 of 6 (and
+# 3 of 3 tower episodes; measured 2026-11-23 with the dense environment and the expert reference).
+DEFAULT_CONTROL_FPS = 20
+JOINT_ACTION_NAMES = [*(f"joint_{i}" for i in range(7)), "open"]
 
 
 def image_key(camera: str) -> str:
@@ -52,8 +65,18 @@ def calibration_key(camera: str) -> str:
     return f"observation.calibration.{camera}"
 
 
-def dataset_features(cameras: list[str], image_size: tuple[int, int]) -> dict[str, dict]:
-    """The ``features`` argument of ``LeRobotDataset.create`` for these cameras and (H, W)."""
+def action_names(action_space: str | None = None) -> list[str]:
+    """The ``action`` feature's names: keyframe (``None``), ``joints`` or ``ee``."""
+    if action_space is None or action_space == "ee":
+        return ACTION_NAMES
+    if action_space == "joints":
+        return JOINT_ACTION_NAMES
+    raise ValueError(f"unknown action space {action_space!r}; accepted: {', '.join(ACTION_SPACES)}")
+
+
+def dataset_features(cameras: list[str], image_size: tuple[int, int], action_space: str | None = None) -> dict[str, dict]:
+    """The ``features`` argument of ``LeRobotDataset.create`` for these cameras and (H, W); the action is
+    the next keyframe (``action_space=None``) or a dense action space (``joints`` / ``ee``)."""
     height, width = image_size
     image = {"dtype": "image", "shape": (height, width, 3), "names": ["height", "width", "channels"]}
     features: dict[str, dict] = {}
@@ -62,7 +85,7 @@ def dataset_features(cameras: list[str], image_size: tuple[int, int]) -> dict[st
         features[depth_key(camera)] = dict(image)
         features[calibration_key(camera)] = {"dtype": "float32", "shape": (20,), "names": CALIBRATION_NAMES}
     features["observation.state"] = {"dtype": "float32", "shape": (15,), "names": STATE_NAMES}
-    features["action"] = {"dtype": "float32", "shape": (8,), "names": ACTION_NAMES}
+    features["action"] = {"dtype": "float32", "shape": (8,), "names": action_names(action_space)}
     features["variation_id"] = {"dtype": "int64", "shape": (1,), "names": None}
     features["keyframe_index"] = {"dtype": "int64", "shape": (1,), "names": None}
     return features
@@ -103,13 +126,49 @@ def world_points(depth_m: np.ndarray, calibration: np.ndarray) -> np.ndarray:
     return camera_points @ transform[:3, :3].T + transform[:3, 3]
 
 
-def episode_frames(episode: Episode, granularity: str) -> list[Frame]:
-    """The recording frames that become dataset frames: keyframe observations, or dense frames."""
+def episode_frames(episode: Episode, granularity: str, stride: int = 1) -> list[Frame]:
+    """The recording frames that become dataset frames: keyframe observations, or every ``stride``-th
+    dense frame (the recorded dense rate divided by ``stride`` is the dataset's control rate)."""
     if granularity == "keyframe":
         return episode.keyframe_frames()
     if granularity == "dense":
-        return episode.dense_frames()
+        return episode.dense_frames()[::stride]
     raise ValueError(f"unknown granularity {granularity!r}; accepted: {', '.join(GRANULARITIES)}")
+
+
+def canonical_quaternion(quaternion) -> np.ndarray:
+    """``q`` or ``-q`` (the same rotation), whichever has ``qx >= 0``: the hemisphere around the top-down
+    grasp (1, 0, 0, 0), so that a regressed ee action does not jump between the two signs."""
+    quaternion = np.asarray(quaternion, np.float64)
+    return -quaternion if quaternion[0] < 0 else quaternion
+
+
+def robot_action(robot: RobotState, action_space: str) -> np.ndarray:
+    """(8,) float32: a robot state as a dense action, ``joints`` = 7 joint positions + gripper command,
+    ``ee`` = grasp-frame pose (canonical quaternion sign) + gripper command."""
+    if action_space == "joints":
+        values = [*robot.joint_positions, robot.gripper_open]
+    elif action_space == "ee":
+        pose = np.asarray(robot.gripper_pose, np.float64)
+        values = [*pose[:3], *canonical_quaternion(pose[3:]), robot.gripper_open]
+    else:
+        raise ValueError(f"unknown action space {action_space!r}; accepted: {', '.join(ACTION_SPACES)}")
+    return np.asarray(values, np.float64).astype(np.float32)
+
+
+def dense_actions(frames: list[Frame], action_space: str) -> list[np.ndarray]:
+    """The action of each dense frame: the robot's state at the next control tick (the last frame
+    repeats its own, i.e. holds still)."""
+    return [robot_action(frames[min(i + 1, len(frames) - 1)].robot, action_space) for i in range(len(frames))]
+
+
+def episode_items(episode: Episode, granularity: str, action_space: str | None = None,
+                  stride: int = 1) -> list[tuple[Frame, np.ndarray]]:
+    """(frame, action) pairs of one episode: what a dataset stores, frame by frame."""
+    frames = episode_frames(episode, granularity, stride)
+    if granularity == "keyframe":
+        return [(f, action_for(episode, f.keyframe_index)) for f in frames]
+    return list(zip(frames, dense_actions(frames, action_space or DEFAULT_ACTION_SPACE)))
 
 
 def action_for(episode: Episode, keyframe_index: int) -> np.ndarray:
@@ -135,10 +194,10 @@ def observation_item(frame: Frame, cameras: list[str]) -> dict[str, np.ndarray]:
     return item
 
 
-def dataset_frame(episode: Episode, frame: Frame, instruction: str) -> dict:
-    """One ``add_frame`` dict for LeRobot from a recording frame."""
+def dataset_frame(episode: Episode, frame: Frame, instruction: str, action: np.ndarray | None = None) -> dict:
+    """One ``add_frame`` dict for LeRobot from a recording frame (default action: the next keyframe)."""
     item: dict = observation_item(frame, episode.info.cameras)
-    item["action"] = action_for(episode, frame.keyframe_index)
+    item["action"] = action_for(episode, frame.keyframe_index) if action is None else action
     item["variation_id"] = np.array([episode.info.variation_id], np.int64)
     item["keyframe_index"] = np.array([frame.keyframe_index], np.int64)
     item["task"] = instruction

@@ -1,4 +1,10 @@
-"""How to load and train on a converted split: one place for the CLI summary and the card."""
+"""How to load and train on a converted split: one place for the CLI summary and the card.
+
+Each export gets the policy that fits it: HiveFormer on keyframes (one frame per macro-step, 4-20
+frames an episode, far shorter than ACT's default chunk of 100), ACT on dense exports with an
+action chunk that the shortest training episode holds (ACT drops chunk positions beyond an
+episode's end as padding; an episode shorter than the chunk teaches nothing about its later steps).
+"""
 
 from __future__ import annotations
 
@@ -23,10 +29,23 @@ def act_input_features(cameras: list[str], image_size: tuple[int, int]) -> dict:
     return features
 
 
+ACT_CHUNK_SECONDS = 2.0  # seconds of actions ACT predicts at once (its default 100 steps at 50 Hz)
+ACT_MIN_EPISODE_FRAMES = 50  # lerobot-doctor's gate for ACT blocks datasets whose episodes are mostly shorter
+
+
+def act_chunk(shortest_episode: int, fps: int) -> tuple[int, int]:
+    """(chunk_size, n_action_steps) for ACT on a dense export: ``ACT_CHUNK_SECONDS`` of actions, never
+    more than the shortest episode; half of each chunk is executed before the policy looks again."""
+    chunk = max(1, min(int(round(ACT_CHUNK_SECONDS * fps)), shortest_episode))
+    return chunk, max(1, chunk // 2)
+
+
 def act_train_args(repo_id: str, root: Path, cameras: list[str], image_size: tuple[int, int],
                    output_dir: Path, steps: int = 2000, batch_size: int = 8, num_workers: int = 2,
-                   log_freq: int = 100) -> list[str]:
-    """``lerobot-train`` arguments for ACT on one split: offline, CPU, no Hub push, no wandb."""
+                   log_freq: int = 100, chunk: tuple[int, int] | None = None) -> list[str]:
+    """``lerobot-train`` arguments for ACT on one split: offline, CPU, no Hub push, no wandb; ``chunk`` =
+    (chunk_size, n_action_steps) overrides ACT's default (100, 100)."""
+    chunk_args = [f"--policy.chunk_size={chunk[0]}", f"--policy.n_action_steps={chunk[1]}"] if chunk else []
     return [
         "lerobot-train",
         "--policy.type=act",
@@ -36,6 +55,7 @@ def act_train_args(repo_id: str, root: Path, cameras: list[str], image_size: tup
         "--policy.pretrained_backbone_weights=null",  # ImageNet weights would be downloaded
         "--policy.push_to_hub=false",
         f"--policy.input_features={json.dumps(act_input_features(cameras, image_size), separators=(',', ':'))}",
+        *chunk_args,
         "--wandb.enable=false",
         f"--output_dir={output_dir}",
         f"--steps={steps}",
@@ -47,3 +67,49 @@ def act_train_args(repo_id: str, root: Path, cameras: list[str], image_size: tup
 
 def act_train_command(*args, **kwargs) -> str:
     return " ".join(shlex.quote(a) for a in act_train_args(*args, **kwargs))
+
+
+def hiveformer_train_args(repo_id: str, root: Path, output_dir: Path, steps: int = 2000, batch_size: int = 16,
+                          log_freq: int = 100) -> list[str]:
+    """``lerobot-train`` arguments for HiveFormer on a keyframe split: CPU, offline (the one-hot instruction
+    encoder needs no weights; ``--policy.text_encoder=clip`` is the paper's, from the Hub), no push, no wandb."""
+    return [
+        "lerobot-train",
+        "--policy.type=hiveformer",
+        f"--dataset.repo_id={repo_id}",
+        f"--dataset.root={root}",
+        "--policy.device=cpu",
+        "--policy.push_to_hub=false",
+        "--policy.text_encoder=one_hot",
+        "--policy.attention_dropout=0",  # on CPU dropout forces PyTorch's unfused (3x slower) attention
+        "--wandb.enable=false",
+        f"--output_dir={output_dir}",
+        f"--steps={steps}",
+        f"--batch_size={batch_size}",
+        "--num_workers=1",
+        f"--log_freq={log_freq}",
+    ]
+
+
+def train_args(granularity: str, repo_id: str, root: Path, cameras: list[str], image_size: tuple[int, int],
+               fps: int, shortest_episode: int, output_dir: Path | None = None) -> list[str]:
+    """The ``lerobot-train`` arguments that fit an export: HiveFormer on keyframes, ACT (with a chunk
+    the shortest episode holds) on dense frames."""
+    if granularity == "keyframe":
+        return hiveformer_train_args(repo_id, root, output_dir or Path("outputs/train/hiveformer"))
+    return act_train_args(repo_id, root, cameras, image_size, output_dir or Path("outputs/train/act"),
+                          chunk=act_chunk(shortest_episode, fps))
+
+
+def train_policy(granularity: str) -> str:
+    """The policy that ``train_args`` suggests for an export."""
+    return "hiveformer" if granularity == "keyframe" else "act"
+
+
+def gate_command(root: Path, chunk_size: int) -> str:
+    """The third-party pre-training check of a dense split for ACT (``pip install lerobot-doctor``)."""
+    return f"lerobot-doctor gate {shlex.quote(str(root))} --policy act --chunk-size {chunk_size}"
+
+
+def quote(args: list[str]) -> str:
+    return " ".join(shlex.quote(a) for a in args)
