@@ -1,4 +1,9 @@
-"""``demo-factory eval``: closed-loop success rates per split for a policy checkpoint or a reference."""
+"""``demo-factory eval``: closed-loop success rates per split for a policy checkpoint or a reference.
+
+Keyframe policies (HiveFormer) and dense policies (ACT, diffusion, …) alike: the action space comes
+from ``--dataset`` (how its splits were exported), else from ``--action-space``, else from the
+dataset the checkpoint was trained on (its ``train_config.json``), else keyframes.
+"""
 
 from __future__ import annotations
 
@@ -6,6 +11,7 @@ import argparse
 import json
 import shutil
 import sys
+from dataclasses import asdict, dataclass
 from pathlib import Path
 
 from demo_factory.tasks import SPLITS, TASKS
@@ -17,14 +23,25 @@ class EvalUsageError(Exception):
     """Bad evaluation input: one line, exit code 2, nothing written."""
 
 
+@dataclass
+class Control:
+    """How the policy acts: its action space, and for dense policies the control rate and time limit."""
+
+    action_space: str = "keyframe"
+    fps: float = 20
+    max_seconds: float = 60.0
+
+
 def add_parser(commands) -> argparse.ArgumentParser:
     from demo_factory.cli import image_size, positive_int
 
     parser = commands.add_parser(
         "eval", help="evaluate a policy closed-loop, per split",
-        description="Roll a keyframe policy out in the tasks it was trained on: each predicted keyframe is "
-                    "reached with the seeded OMPL planner, then the gripper is actuated. Writes results.json, "
-                    "results.md (paper layout), results.png and episodes.jsonl.",
+        description="Roll a policy out in the tasks it was trained on. A keyframe policy's predicted keyframe is "
+                    "reached with the seeded OMPL planner, then the gripper is actuated; a dense policy (a dataset "
+                    "converted with --granularity dense) acts at every control tick through the joints' position "
+                    "controllers (inverse kinematics for ee actions). Writes results.json, results.md (paper "
+                    "layout), results.png and episodes.jsonl.",
     )
     who = parser.add_mutually_exclusive_group(required=True)
     who.add_argument("--policy.path", dest="policy_path", help="a LeRobot checkpoint (…/pretrained_model)")
@@ -41,6 +58,16 @@ def add_parser(commands) -> argparse.ArgumentParser:
     parser.add_argument("--step-slack", type=int, default=2,
                         help="extra steps beyond the expert's keyframe count (default: 2)")
     parser.add_argument("--image-size", type=image_size, help="camera size (default: the dataset's, else 128)")
+    parser.add_argument("--action-space", metavar="SPACE",
+                        help="what the policy's 8-d action means: keyframe (the next keyframe's pose + open), joints "
+                             "or ee (the next control tick's joint positions or grasp-frame pose, + gripper command); "
+                             "default: the --dataset's export, else the dataset the checkpoint was trained on, else "
+                             "keyframe")
+    parser.add_argument("--fps", type=float, metavar="N",
+                        help="dense policies: control ticks per second (default: the dataset's rate, else 20)")
+    parser.add_argument("--max-seconds", type=float, metavar="S",
+                        help="dense policies: simulated seconds before an episode counts as failed (default: 1.5x "
+                             "the dataset's longest expert episode, else 60)")
     parser.add_argument("--device", default="cpu", help="torch device for the policy (default: cpu)")
     parser.add_argument("--record", action="store_true", help="also record every rollout to MCAP under OUT/rollouts")
     parser.add_argument("--out", required=True, help="output folder")
@@ -49,9 +76,49 @@ def add_parser(commands) -> argparse.ArgumentParser:
     return parser
 
 
-def _plan(args) -> tuple[str, dict[str, list], tuple[int, int]]:
+DENSE_TIME_FACTOR = 1.5  # a dense episode may take this much longer than the longest expert episode
+
+
+def trained_export(checkpoint: Path) -> dict | None:
+    """How the dataset a checkpoint was trained on was exported (``runner.dataset_export``), when its
+    ``train_config.json`` names a local converted dataset that still exists; else None."""
+    from demo_factory.evaluate.runner import dataset_export
+
+    try:
+        root = json.loads((checkpoint / "train_config.json").read_text())["dataset"]["root"]
+        return dataset_export(Path(root)) if root else None
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
+
+
+def _control(args, export: dict | None, source: str) -> Control:
+    """The action space, rate and time limit: options first, then the export (``source`` names it)."""
+    from demo_factory.evaluate.env import DEFAULT_CONTROL_FPS, EVAL_ACTION_SPACES, KEYFRAME, control_period
+
+    space = args.action_space or (export or {}).get("action_space") or KEYFRAME
+    if space not in EVAL_ACTION_SPACES:
+        raise EvalUsageError(f"unknown --action-space {space!r}; accepted: {', '.join(EVAL_ACTION_SPACES)}")
+    if export is not None and args.action_space and args.action_space != export["action_space"]:
+        raise EvalUsageError(f"--action-space {args.action_space} does not match {source}, exported with action space "
+                             f"{export['action_space']}")
+    dense_export = export if export and export["action_space"] != KEYFRAME else {}
+    fps = args.fps or dense_export.get("fps") or DEFAULT_CONTROL_FPS
+    try:
+        control_period(fps)
+    except ValueError as exc:
+        raise EvalUsageError(f"--fps: {exc}") from None
+    longest = dense_export.get("longest_seconds")
+    max_seconds = args.max_seconds or (round(DENSE_TIME_FACTOR * longest, 1) if longest else 60.0)
+    if max_seconds <= 0:
+        raise EvalUsageError(f"--max-seconds {max_seconds:g} is out of range; accepted: a number of seconds > 0")
+    return Control(space, fps, max_seconds)
+
+
+def _plan(args) -> tuple[str, dict[str, list], tuple[int, int], Control]:
     from demo_factory.evaluate.env import default_episodes
-    from demo_factory.evaluate.runner import split_episodes
+    from demo_factory.evaluate.runner import dataset_export, split_episodes
+
+    checkpoint = Path(args.policy_path) if args.policy_path else None
 
     if args.dataset is None:
         if args.task is None:
@@ -61,7 +128,9 @@ def _plan(args) -> tuple[str, dict[str, list], tuple[int, int]]:
         if unknown:
             raise EvalUsageError(f"unknown split {unknown[0]!r} without --dataset; accepted: {', '.join(TASK_SPLITS)}")
         plan = {s: default_episodes(args.task, s, args.episodes, args.seed) for s in splits}
-        return args.task, plan, args.image_size or (128, 128)
+        export = trained_export(checkpoint) if checkpoint is not None and not args.action_space else None
+        control = _control(args, export, "the checkpoint's training dataset")
+        return args.task, plan, args.image_size or (128, 128), control
     root = Path(args.dataset)
     if not root.is_dir():
         raise EvalUsageError(f"--dataset {root}: no such folder")
@@ -87,18 +156,27 @@ def _plan(args) -> tuple[str, dict[str, list], tuple[int, int]]:
     info = json.loads((root / splits[0] / "meta" / "info.json").read_text())
     shapes = [f["shape"] for k, f in info["features"].items() if k.startswith("observation.images.")]
     size = args.image_size or (tuple(shapes[0][:2]) if shapes else (128, 128))
-    return task, plan, size
+    exports = {split: dataset_export(root / split) for split in splits}
+    spaces = sorted({e["action_space"] for e in exports.values()})
+    if len(spaces) != 1:
+        raise EvalUsageError(f"--dataset {root}: splits of several action spaces ({', '.join(spaces)})")
+    export = exports[splits[0]]
+    longest = [e["longest_seconds"] for e in exports.values() if e["longest_seconds"]]
+    export = {**export, "longest_seconds": max(longest) if longest else None}
+    return task, plan, size, _control(args, export, f"--dataset {root}")
 
 
 def run(args) -> int:
     from tqdm import tqdm
 
-    from demo_factory.evaluate.env import KeyframeEnv
-    from demo_factory.evaluate.policies import CurrentPosePolicy, ExpertPolicy, LeRobotKeyframePolicy
+    from demo_factory.evaluate.env import make_env
+    from demo_factory.evaluate.policies import CurrentPosePolicy, ExpertPolicy, LeRobotPolicy
     from demo_factory.evaluate.runner import run_episode, summarise, write_results
 
     try:
-        task, plan, size = _plan(args)
+        if args.policy_path is not None and not (Path(args.policy_path) / "config.json").is_file():
+            raise EvalUsageError(f"--policy.path {args.policy_path}: not a LeRobot checkpoint (no config.json)")
+        task, plan, size, control = _plan(args)
         out = Path(args.out)
         if out.exists() and any(out.iterdir()) and not args.overwrite:
             raise EvalUsageError(f"--out {out}: exists and is not empty; pass --overwrite to replace it")
@@ -108,9 +186,14 @@ def run(args) -> int:
             policy = CurrentPosePolicy()
         else:
             path = Path(args.policy_path)
-            if not (path / "config.json").is_file():
-                raise EvalUsageError(f"--policy.path {path}: not a LeRobot checkpoint (no config.json)")
-            policy = LeRobotKeyframePolicy(path, device=args.device)
+            trained = trained_export(path)
+            if trained is not None and trained["action_space"] != control.action_space:
+                raise EvalUsageError(f"--policy.path {path}: trained on a {trained['action_space']} export, but the "
+                                     f"evaluation's action space is {control.action_space}")
+            try:
+                policy = LeRobotPolicy(path, device=args.device)
+            except ValueError as exc:
+                raise EvalUsageError(str(exc)) from None
     except EvalUsageError as exc:
         print(f"demo-factory eval: error: {exc}", file=sys.stderr)
         return 2
@@ -118,7 +201,8 @@ def run(args) -> int:
         shutil.rmtree(out)
     staging = out.with_name(f".{out.name}.partial")
     shutil.rmtree(staging, ignore_errors=True)
-    env = KeyframeEnv(task, image_size=size, step_slack=args.step_slack, episodes=next(iter(plan.values())))
+    env = make_env(task, control.action_space, fps=control.fps, max_seconds=control.max_seconds,
+                   step_slack=args.step_slack, image_size=size, episodes=next(iter(plan.values())))
     results, records = {}, []
     try:
         for split, episodes in plan.items():
@@ -134,12 +218,14 @@ def run(args) -> int:
             records += rows
     finally:
         env.close()
-    write_results(staging, policy.name, task, results)
+    write_results(staging, policy.name, task, results, asdict(control))
     with open(staging / "episodes.jsonl", "w") as stream:
         for row in records:
             stream.write(json.dumps(row) + "\n")
     staging.rename(out)
-    print(f"\n{policy.name} on {task}:")
+    acting = ("one predicted keyframe per step" if control.action_space == "keyframe" else
+              f"{control.action_space} actions at {control.fps:g} fps, at most {control.max_seconds:g} s per episode")
+    print(f"\n{policy.name} on {task} ({acting}):")
     for split, summary in results.items():
         reasons = ", ".join(f"{k}: {v}" for k, v in summary["failure_reasons"].items()) or "none"
         print(f"  {split:<24} success {100 * summary['success_rate']:5.1f}%  over {summary['episodes']} episodes, "

@@ -1,8 +1,10 @@
-"""Keyframe policies that ``demo-factory eval`` can run: a LeRobot checkpoint, or references.
+"""Policies that ``demo-factory eval`` can run: a LeRobot checkpoint, or references.
 
-A policy has ``name``, ``reset(env)`` at the start of each episode and ``act(env) -> (8,)``
-returning the next keyframe ``[x, y, z, qx, qy, qz, qw, open]`` from ``env.frame`` (the
-observation) and ``env.task_description`` (the instruction).
+A policy has ``name``, ``reset(env)`` at the start of each episode and ``act(env) -> (8,)``, the
+action for ``env.frame`` (the observation) and ``env.task_description`` (the instruction) in the
+environment's action space (``env.action_space_name``): the next keyframe ``[x, y, z, qx, qy, qz, qw,
+open]`` for a ``KeyframeEnv``; for a ``DenseEnv`` the next control tick's ``joints`` (7 positions +
+gripper command) or ``ee`` (grasp-frame pose + gripper command).
 """
 
 from __future__ import annotations
@@ -11,25 +13,62 @@ from pathlib import Path
 
 import numpy as np
 
-from demo_factory.convert.features import observation_item
+from demo_factory.convert.features import observation_item, robot_action
+from demo_factory.execution import KeyframeExecutor
+from demo_factory.planning import JointPlanner
+from demo_factory.record import RobotState
 
 
 class ExpertPolicy:
-    """The scripted expert as a reference policy (privileged: reads the scene, not the cameras)."""
+    """The scripted expert as a reference policy (privileged: reads the scene, not the cameras).
+
+    In a keyframe environment it emits the expert's keyframes. In a dense one it replays the expert's
+    dense actions: at ``reset`` it runs the expert (the same keyframes, planner and seeds as the
+    generator) in a copy of the episode's scene and keeps the robot's state at every control tick;
+    then the action at tick t is the state at tick t + 1, exactly as a dense export labels its frames.
+    """
 
     name = "expert"
 
     def reset(self, env) -> None:
-        pass
+        self.trajectory = expert_trajectory(env) if env.action_space_name != "keyframe" else None
 
     def act(self, env) -> np.ndarray:
+        if self.trajectory is not None:
+            robot = self.trajectory[min(env.steps + 1, len(self.trajectory) - 1)]
+            return robot_action(robot, env.action_space_name).astype(np.float64)
         targets = env.expert_keyframes
         target = targets[min(env.steps, len(targets) - 1)]
         return np.array([*target.pose, target.gripper_open])
 
 
+def expert_trajectory(env) -> list[RobotState]:
+    """The robot's state at every control tick (tick 0 = the start) while the expert solves ``env``'s
+    current episode in a copy of its scene."""
+    from demo_factory.evaluate.env import episode_world
+
+    world, task = episode_world(env.episode, env.image_size)
+    states: list[RobotState] = []
+
+    def record(w) -> None:
+        if w.step_count % env.period == 0:
+            states.append(RobotState(w.joint_positions(), w.gripper_pose(), w.gripper_command, w.finger_width()))
+
+    try:
+        record(world)
+        world.step_callbacks.append(record)
+        executor = KeyframeExecutor(world, env.kinematics, JointPlanner(), env.episode.seed, task.graspable_bodies())
+        for transition, target in enumerate(task.expert(world), start=1):
+            if not executor.execute(target, transition).ok:
+                break
+    finally:
+        world.close()
+    return states
+
+
 class CurrentPosePolicy:
-    """Always predicts the current gripper pose and opening: a floor that must score 0%."""
+    """Always predicts the current state (gripper pose and opening, or the joints): a floor that must
+    score 0%."""
 
     name = "current_pose"
 
@@ -38,6 +77,8 @@ class CurrentPosePolicy:
 
     def act(self, env) -> np.ndarray:
         robot = env.frame.robot
+        if env.action_space_name != "keyframe":
+            return robot_action(robot, env.action_space_name).astype(np.float64)
         return np.array([*robot.gripper_pose, robot.gripper_open])
 
 
@@ -55,8 +96,10 @@ def observation_batch(frame, instruction: str) -> dict:
     return batch
 
 
-class LeRobotKeyframePolicy:
-    """Any LeRobot policy checkpoint whose action is the keyframe ``[x, y, z, quat, open]``."""
+class LeRobotPolicy:
+    """Any LeRobot policy checkpoint with an 8-d action: a keyframe ``[x, y, z, quat, open]`` or a dense
+    ``joints`` / ``ee`` action. ``select_action`` is called once per step; policies that predict action
+    chunks (ACT, diffusion) serve them from their own queue and predict again when it runs dry."""
 
     def __init__(self, path: str | Path, device: str = "cpu"):
         import torch
@@ -78,7 +121,8 @@ class LeRobotKeyframePolicy:
         self.name = f"{config.type} ({Path(path).name})"
         action = config.output_features.get("action")
         if action is None or tuple(action.shape) != (8,):
-            raise ValueError(f"{path}: the policy's action is {action}; evaluation needs the 8-d keyframe action")
+            raise ValueError(f"{path}: the policy's action is {action}; evaluation needs an 8-d action "
+                             "(keyframe, joints or ee)")
 
     def reset(self, env) -> None:
         self.policy.reset()

@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from demo_factory.convert.converter import ConvertError, check_dataset_provenance
-from demo_factory.evaluate.env import EvalEpisode, KeyframeEnv, evaluation_seed
+from demo_factory.evaluate.env import KEYFRAME, EvalEpisode, KeyframeEnv, evaluation_seed
 from demo_factory.generate import library_versions
 from demo_factory.record import FORMAT_VERSION, EpisodeInfo, EpisodeWriter, Keyframe
 
@@ -42,14 +42,27 @@ def split_episodes(dataset_split_root: Path, split: str, count: int, base_seed: 
     ]
 
 
+def dataset_export(dataset_split_root: Path) -> dict:
+    """How a converted split was exported: ``{"action_space": "keyframe" | "joints" | "ee", "fps": control
+    rate, "longest_seconds": the longest episode's duration}`` (from ``meta/info.json``)."""
+    info = json.loads((dataset_split_root / "meta" / "info.json").read_text())
+    provenance = info.get("demo_factory") or {}
+    frames = [e["frames"] for e in provenance.get("episodes", []) if "frames" in e]
+    if provenance.get("granularity") != "dense":
+        return {"action_space": KEYFRAME, "fps": info["fps"], "longest_seconds": None}
+    return {"action_space": provenance.get("action_space", "joints"), "fps": info["fps"],
+            "longest_seconds": max(frames) / info["fps"] if frames else None}
+
+
 def run_episode(env: KeyframeEnv, policy, episode: EvalEpisode, record_path: Path | None = None) -> dict:
-    """One rollout; returns its record (instruction, predicted poses, outcome).
+    """One rollout; returns its record (instruction, predicted keyframes or dense actions, outcome).
 
     With ``record_path`` the rollout is also recorded to MCAP with the generator's recorder: one
-    frame per step, and the predicted keyframes as keyframe markers.
+    frame per step, and in a keyframe environment the predicted keyframes as keyframe markers.
     """
     env.reset(options={"episode": episode})
     policy.reset(env)
+    dense = env.action_space_name != KEYFRAME
     writer = _rollout_writer(env, episode, record_path) if record_path is not None else None
     predicted, info = [], {"is_success": False, "failure_reason": ""}
     while True:
@@ -58,8 +71,9 @@ def run_episode(env: KeyframeEnv, policy, episode: EvalEpisode, record_path: Pat
         _, _, terminated, truncated, info = env.step(action)
         if writer is not None:
             writer.write_frame(env.frame)
-            writer.write_keyframe(Keyframe(env.steps, env.frame.time_ns, action[:7], float(action[7] >= 0.5),
-                                           env.frame.robot.gripper_pose, "predicted"))
+            if not dense:
+                writer.write_keyframe(Keyframe(env.steps, env.frame.time_ns, action[:7], float(action[7] >= 0.5),
+                                               env.frame.robot.gripper_pose, "predicted"))
         if terminated or truncated:
             break
     if writer is not None:
@@ -70,7 +84,9 @@ def run_episode(env: KeyframeEnv, policy, episode: EvalEpisode, record_path: Pat
         "failure_reason": info["failure_reason"] or None,
         "steps": env.steps,
         "step_limit": env.step_limit,
-        "predicted_keyframes": predicted,
+        **({"action_space": env.action_space_name, "fps": env.fps, "seconds": round(env.steps / env.fps, 3),
+            "unreachable_ticks": info.get("unreachable_ticks", 0), "actions": predicted}
+           if dense else {"predicted_keyframes": predicted}),
     }
 
 
@@ -80,7 +96,8 @@ def _rollout_writer(env: KeyframeEnv, episode: EvalEpisode, path: Path) -> Episo
     info = EpisodeInfo(
         format_version=FORMAT_VERSION, task=episode.task, split=episode.split, variation_id=episode.variation_id,
         variation=list(variation.colours), episode_seed=episode.seed, instruction=episode.instruction,
-        cameras=list(env.frame.cameras), image_size=env.image_size, dense_fps=0.0,
+        cameras=list(env.frame.cameras), image_size=env.image_size,
+        dense_fps=float(getattr(env, "fps", 0.0)) if env.action_space_name != KEYFRAME else 0.0,
         extra={"evaluation": True, **env.sim_task.scene_facts()},
     )
     writer = EpisodeWriter(path, info)
@@ -91,7 +108,8 @@ def _rollout_writer(env: KeyframeEnv, episode: EvalEpisode, path: Path) -> Episo
 
 
 def summarise(records: list[dict]) -> dict:
-    """Success rate, episodes, mean steps and failure reasons, overall and per variation."""
+    """Success rate, episodes, mean steps (keyframes or control ticks) and failure reasons, overall and
+    per variation."""
     def block(rows):
         return {
             "success_rate": float(np.mean([r["success"] for r in rows])) if rows else 0.0,
@@ -106,10 +124,12 @@ def summarise(records: list[dict]) -> dict:
     return {**block(records), "per_variation": {str(v): block(rows) for v, rows in sorted(by_variation.items())}}
 
 
-def write_results(out: Path, policy_name: str, task: str, results: dict[str, dict]) -> None:
-    """``results.json``, ``results.md`` (paper layout: rows = policy, columns = split) and a PNG chart."""
+def write_results(out: Path, policy_name: str, task: str, results: dict[str, dict], control: dict | None = None) -> None:
+    """``results.json``, ``results.md`` (paper layout: rows = policy, columns = split) and a PNG chart;
+    ``control`` (how the policy acted: action space, rate, time limit) goes into ``results.json``."""
     out.mkdir(parents=True, exist_ok=True)
-    (out / "results.json").write_text(json.dumps({"policy": policy_name, "task": task, "splits": results}, indent=2) + "\n")
+    body = {"policy": policy_name, "task": task, **({"control": control} if control else {}), "splits": results}
+    (out / "results.json").write_text(json.dumps(body, indent=2) + "\n")
     splits = list(results)
     header = "| policy | " + " | ".join(splits) + " |\n|---|" + "---|" * len(splits) + "\n"
     row = f"| {policy_name} | " + " | ".join(f"{100 * results[s]['success_rate']:.1f}" for s in splits) + " |\n"

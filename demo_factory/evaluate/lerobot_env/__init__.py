@@ -1,7 +1,11 @@
-"""The keyframe environment for ``lerobot-eval``: gym ids and a LeRobot ``EnvConfig``.
+"""demo-factory's environments for ``lerobot-eval``: gym ids and a LeRobot ``EnvConfig``.
 
     lerobot-eval --env.discover_packages_path=demo_factory.evaluate.lerobot_env \\
         --env.type=demo_factory --env.task=push_buttons --policy.path=... --eval.n_episodes=10 --eval.batch_size=1
+
+``--env.action_space`` picks the environment: ``keyframe`` (default; one step = one predicted
+keyframe, reached by planning) or, for policies trained on a dense export, ``joints`` / ``ee`` (one
+step = one control tick at ``--env.fps``, at most ``--env.max_seconds`` of simulated time).
 
 Importing this package (``--env.discover_packages_path`` needs a package) registers ``gym_demo_factory/<task>`` for every task and the ``demo_factory``
 env type. Observations reach the policy the way ``lerobot-eval`` passes any gym observation:
@@ -19,7 +23,7 @@ import gymnasium as gym
 from lerobot.configs.types import FeatureType, PolicyFeature
 from lerobot.envs.configs import EnvConfig
 
-from demo_factory.evaluate.env import DEFAULT_STEP_SLACK
+from demo_factory.evaluate.env import DEFAULT_CONTROL_FPS, DEFAULT_DENSE_SECONDS, DEFAULT_STEP_SLACK, EVAL_ACTION_SPACES, control_period
 from demo_factory.sim import CAMERA_NAMES
 from demo_factory.tasks import TASKS
 
@@ -28,7 +32,7 @@ ENV_TYPE = "demo_factory"
 for _task in TASKS:
     _id = f"gym_{ENV_TYPE}/{_task}"
     if _id not in gym.registry:
-        gym.register(id=_id, entry_point="demo_factory.evaluate.env:KeyframeEnv", kwargs={"task": _task})
+        gym.register(id=_id, entry_point="demo_factory.evaluate.env:make_env", kwargs={"task": _task})
 
 
 def _features(height: int, width: int) -> dict[str, PolicyFeature]:
@@ -53,10 +57,15 @@ def _features_map() -> dict[str, str]:
 @EnvConfig.register_subclass(ENV_TYPE)
 @dataclass
 class DemoFactoryEnv(EnvConfig):
-    """demo-factory's keyframe tasks: one step = one predicted keyframe ``[x, y, z, quat, open]``."""
+    """demo-factory's tasks: one step = one predicted keyframe ``[x, y, z, quat, open]`` (``action_space``
+    keyframe) or one control tick of a dense policy (``joints`` or ``ee``, at ``fps``)."""
 
     task: str | None = "push_buttons"
-    fps: int = 10
+    # keyframe: the next keyframe's pose + open; joints / ee: the next control tick's 7 joint positions or
+    # grasp-frame pose, + gripper command (as in a dataset converted with --granularity dense --action-space)
+    action_space: str = "keyframe"
+    fps: int = DEFAULT_CONTROL_FPS  # dense: control ticks per second (the dense export's fps)
+    max_seconds: float = DEFAULT_DENSE_SECONDS  # dense: simulated seconds before an episode counts as failed
     split: str = "test"  # variations: "train" (seen) or "test" (unseen), with synthetic instructions
     image_height: int = 128
     image_width: int = 128
@@ -68,9 +77,13 @@ class DemoFactoryEnv(EnvConfig):
     def __post_init__(self):
         if self.task not in TASKS:
             raise ValueError(f"unknown task {self.task!r}; accepted: {', '.join(TASKS)}")
+        if self.action_space not in EVAL_ACTION_SPACES:
+            raise ValueError(f"unknown action_space {self.action_space!r}; accepted: {', '.join(EVAL_ACTION_SPACES)}")
+        control_period(self.fps)
         self.features = _features(self.image_height, self.image_width)
 
     @property
     def gym_kwargs(self) -> dict:
         return {"split": self.split, "image_size": (self.image_height, self.image_width),
-                "step_slack": self.step_slack, "base_seed": self.base_seed}
+                "step_slack": self.step_slack, "base_seed": self.base_seed, "action_space": self.action_space,
+                "fps": self.fps, "max_seconds": self.max_seconds}
