@@ -770,13 +770,16 @@ class HiveformerPolicy(PreTrainedPolicy):
     def get_optim_params(self) -> list[dict]:
         """Two AdamW groups, as in the authors' train.py: no weight decay on biases and normalisation
         layers, the preset's weight decay on everything else."""
-        no_decay = set()
-        for module in self.modules():
-            if isinstance(module, nn.LayerNorm | nn.GroupNorm):
-                no_decay.update(id(p) for p in module.parameters(recurse=False))
-        trainable = [(name, p) for name, p in self.named_parameters() if p.requires_grad]
-        plain = [p for name, p in trainable if name.endswith("bias") or id(p) in no_decay]
-        decayed = [p for name, p in trainable if not (name.endswith("bias") or id(p) in no_decay)]
+        norms = {
+            id(p)
+            for module in self.modules()
+            if isinstance(module, nn.LayerNorm | nn.GroupNorm)
+            for p in module.parameters(recurse=False)
+        }
+        decayed, plain = [], []
+        for name, p in self.named_parameters():
+            if p.requires_grad:
+                (plain if name.endswith("bias") or id(p) in norms else decayed).append(p)
         return [{"params": decayed}, {"params": plain, "weight_decay": 0.0}]
 
     def reset(self):
