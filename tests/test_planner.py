@@ -89,3 +89,37 @@ def test_same_seed_same_path_in_two_fresh_processes():
         for _ in range(2)
     ]
     assert paths[0] == paths[1] and len(paths[0]) >= 2
+
+
+def test_a_free_straight_line_is_the_path_without_sampling():
+    world = World()
+    kinematics = Kinematics()
+    start = kinematics.inverse([0.45, 0.2, 0.2, *TOP_DOWN])
+    goal = kinematics.inverse([0.5, -0.1, 0.15, *TOP_DOWN])
+    kinematics.close()
+    world.reset_arm(start)
+    result = JointPlanner().plan(world, start, goal, episode_seed=5, transition=0)
+    assert [a.status for a in result.attempts] == ["exact"]
+    assert len(result.path) == 2 and np.array_equal(result.path[0], start) and np.array_equal(result.path[1], goal)
+    world.close()
+
+
+def test_self_collision_prefilter_gives_the_exhaustive_answer():
+    import pybullet as p
+
+    from demo_factory.planning.planner import SELF_COLLISION_PAIRS
+    from demo_factory.sim.world import JOINT_LOWER, JOINT_UPPER
+
+    world = World()
+    checker = CollisionChecker(world)
+    rng = np.random.default_rng(0)
+    touching = 0
+    for _ in range(300):
+        checker.set_configuration(rng.uniform(JOINT_LOWER, JOINT_UPPER))
+        p.performCollisionDetection(physicsClientId=world.client)
+        exhaustive = any(p.getClosestPoints(world.robot, world.robot, 0.0, a, b, physicsClientId=world.client)
+                         for a, b in SELF_COLLISION_PAIRS)
+        assert checker._self_collision() == exhaustive
+        touching += exhaustive
+    assert touching > 0  # the sample holds self-collisions, so both answers were exercised
+    world.close()

@@ -132,3 +132,8 @@ def test_dense_frames_between_keyframes(tmp_path):
     assert all(b - a == 100_000_000 for a, b in zip(times[:-1], times[1:]))  # exactly 10 fps of sim time
     assert len({f.time_ns for f in episode.frames}) == len(episode.frames)  # one frame per instant
     assert episode.frames[0].is_keyframe and episode.frames[0].is_dense
+
+
+def test_format_version_2_recordings_are_still_read(tmp_path):
+    path = EpisodeWriter(tmp_path / "v2.mcap", _info(format_version=2)).close(0, True, [], {})
+    assert read_episode(path).info.format_version == 2

@@ -6,6 +6,10 @@ So that attempt ``i`` of a transition depends on its own seed and nothing else, 
 in a forked child of the simulation process: the child sets its seed, plans against its private
 copy of the PyBullet world (it may move the robot freely there) and sends the path back through a
 pipe. The parent never creates an OMPL planner, so every child starts from a pristine generator.
+
+The first attempt of a transition first tries the straight line in joint space, checked densely: where
+it is free (most tabletop moves) it is the shortest path, found without sampling, so no RRTConnect
+tree is grown and nothing needs simplifying. It depends on no seed at all.
 """
 
 from __future__ import annotations
@@ -26,6 +30,9 @@ MAX_ATTEMPTS = 10
 SELF_COLLISION_PAIRS = tuple(
     (a, b) for a in (-1, 0, 1, 2, 3) for b in (5, 6, 8, 9, 10) if b - a > 2
 )
+_PAIR_LINKS = tuple(sorted({link for pair in SELF_COLLISION_PAIRS for link in pair}))
+# The pairs as indices into _PAIR_LINKS, beside the link ids.
+_PAIRS = tuple((_PAIR_LINKS.index(a), _PAIR_LINKS.index(b), a, b) for a, b in SELF_COLLISION_PAIRS)
 
 
 def attempt_seed(episode_seed: int, transition: int, attempt: int) -> int:
@@ -61,8 +68,7 @@ class CollisionChecker:
             self.ignore.add(grasped[0])
 
     def set_configuration(self, q) -> None:
-        for j, v in zip(ARM_JOINTS, q):
-            p.resetJointState(self.robot, j, float(v), physicsClientId=self.client)
+        p.resetJointStatesMultiDof(self.robot, ARM_JOINTS, [[float(v)] for v in q], physicsClientId=self.client)
         if self.grasped is not None:
             body, pos, orn = self.grasped
             state = p.getLinkState(self.robot, GRASP_LINK, computeForwardKinematics=True, physicsClientId=self.client)
@@ -80,8 +86,19 @@ class CollisionChecker:
             for contact in p.getContactPoints(bodyA=body, physicsClientId=self.client):
                 if contact[2] != self.robot and contact[8] < self.margin:
                     return True
-        for a, b in SELF_COLLISION_PAIRS:
-            if p.getClosestPoints(self.robot, self.robot, 0.0, a, b, physicsClientId=self.client):
+        return self._self_collision()
+
+    def _self_collision(self) -> bool:
+        """Whether a pair of SELF_COLLISION_PAIRS touches. The exact query runs only for pairs whose
+        bounding boxes overlap (PyBullet's boxes contain the shapes, so the answer is the same); most
+        pairs of a configuration are far apart."""
+        robot, client = self.robot, self.client
+        boxes = [p.getAABB(robot, link, physicsClientId=client) for link in _PAIR_LINKS]
+        for i, j, a, b in _PAIRS:
+            (a_low, a_high), (b_low, b_high) = boxes[i], boxes[j]
+            if (a_low[0] <= b_high[0] and b_low[0] <= a_high[0] and a_low[1] <= b_high[1]
+                    and b_low[1] <= a_high[1] and a_low[2] <= b_high[2] and b_low[2] <= a_high[2]
+                    and p.getClosestPoints(robot, robot, 0.0, a, b, physicsClientId=client)):
                 return True
         return False
 
@@ -117,7 +134,7 @@ class JointPlanner:
         for attempt in range(max_attempts):
             seed = attempt_seed(episode_seed, transition, attempt)
             began = time.perf_counter()
-            status, path = self._attempt_in_child(world, start, goal, seed, grasped, ignore_bodies)
+            status, path = self._attempt_in_child(world, start, goal, seed, grasped, ignore_bodies, attempt == 0)
             result.solve_seconds.append(time.perf_counter() - began)
             length = float(sum(np.linalg.norm(b - a) for a, b in zip(path[:-1], path[1:]))) if path else 0.0
             result.attempts.append(PlannerAttempt(transition, attempt, seed, status, round(length, 6)))
@@ -134,18 +151,25 @@ class JointPlanner:
             raise RuntimeError(result)
         return result
 
-    def _attempt_in_child(self, world, start, goal, seed, grasped, ignore_bodies):
-        outcome = _in_child(lambda: self._solve(world, start, goal, seed, grasped, ignore_bodies))
+    def _attempt_in_child(self, world, start, goal, seed, grasped, ignore_bodies, try_straight):
+        outcome = _in_child(lambda: self._solve(world, start, goal, seed, grasped, ignore_bodies, try_straight))
         return outcome if isinstance(outcome, tuple) else (outcome, None)
 
-    def _solve(self, world, start, goal, seed, grasped, ignore_bodies):
+    def _solve(self, world, start, goal, seed, grasped, ignore_bodies, try_straight=False):
         from ompl import base as ob
         from ompl import geometric as og
         from ompl import util as ou
 
+        checker = CollisionChecker(world, self.margin, ignore_bodies, grasped)
+        if not checker.valid(start):
+            return "invalid_start", None
+        if not checker.valid(goal):
+            return "invalid_goal", None
+        straight = [np.array(start, dtype=float), np.array(goal, dtype=float)]
+        if try_straight and checker.path_valid(straight):
+            return "exact", straight
         ou.setLogLevel(ou.LOG_ERROR)
         ou.RNG.setSeed(seed)
-        checker = CollisionChecker(world, self.margin, ignore_bodies, grasped)
         space = ob.RealVectorStateSpace(7)
         bounds = ob.RealVectorBounds(7)
         for i in range(7):
@@ -161,10 +185,6 @@ class JointPlanner:
         for i in range(7):
             start_state[i] = float(start[i])
             goal_state[i] = float(goal[i])
-        if not checker.valid(start):
-            return "invalid_start", None
-        if not checker.valid(goal):
-            return "invalid_goal", None
         setup.setStartAndGoalStates(start_state, goal_state)
         setup.solve(self.timeout)
         if not setup.haveExactSolutionPath():

@@ -19,7 +19,11 @@ import numpy as np
 
 # 2: push_buttons and tower variation ids are the HiveFormer paper's (train 0-99, test 100-199);
 # version 1 recordings numbered them differently and are refused by the reader.
-FORMAT_VERSION = 2
+# 3: the planner takes the straight joint-space line where it is free, so a transition's path (and the
+# frames after it) can differ from a version 2 recording of the same seed; the contents are the same,
+# and version 2 recordings are still read.
+FORMAT_VERSION = 3
+OLDEST_READABLE_FORMAT = 2
 
 
 @dataclass

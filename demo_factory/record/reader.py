@@ -16,6 +16,7 @@ from scipy.spatial.transform import Rotation
 from demo_factory.record import schema
 from demo_factory.record.episode import (
     FORMAT_VERSION,
+    OLDEST_READABLE_FORMAT,
     CameraObservation,
     Episode,
     EpisodeInfo,
@@ -103,7 +104,7 @@ def _assemble(path: Path, messages: list[tuple[str, int, object]], images: bool 
             f"{path}: recording format version {found} is newer than this demo-factory reads "
             f"(up to {FORMAT_VERSION}); upgrade demo-factory"
         )
-    if found < FORMAT_VERSION:
+    if found < OLDEST_READABLE_FORMAT:
         raise RecordingError(
             f"{path}: recording format version {found} numbers variations the old way (before the HiveFormer "
             f"paper's ids); regenerate it with this demo-factory (format version {FORMAT_VERSION})"
