@@ -7,7 +7,7 @@ PLUGIN := policies/lerobot_policy_hiveformer
 DEMO_RAW := data/raw/push_buttons
 DEMO_DATASET := data/lerobot/push_buttons
 
-.PHONY: install demo test bench reference cards clean
+.PHONY: install demo test bench reference reference-act cards clean
 
 install: $(STAMP)
 
@@ -44,6 +44,10 @@ bench: install
 # → closed-loop eval, on the CPU in about an hour; resumes if interrupted. Results in outputs/reference/.
 reference: install
 	$(BIN)/python -m demo_factory.reference_run --out outputs/reference
+
+# The same chain for ACT on a dense export of one variation (outputs/reference_act/).
+reference-act: install
+	$(BIN)/python -m demo_factory.reference_run --policy act --out outputs/reference_act
 
 # The committed cards of the standard datasets (dataset_cards/<name>/README.md + contact sheet),
 # from a few freshly generated episodes per split in a temporary folder.

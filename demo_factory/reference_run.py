@@ -1,11 +1,13 @@
 """The reference run: proof, on one CPU, that a policy trained on our datasets succeeds closed loop.
 
     python -m demo_factory.reference_run [--out outputs/reference] [--steps 1500] ...   (or `make reference`)
+    python -m demo_factory.reference_run --policy act [--out outputs/reference_act]     (or `make reference-act`)
 
 The whole chain with the real components and the commands a user runs: `demo-factory generate`
-(push_buttons keyframe demonstrations of a few train variations, plus test-variation episodes for
-the unseen splits) → `demo-factory convert` → `lerobot-train --policy.type=hiveformer` →
-`demo-factory eval` on new scene seeds, per split. Every stage writes into its own folder under
+(push_buttons demonstrations of a few train variations, plus test-variation episodes for the unseen
+splits) → `demo-factory convert` → `lerobot-train` → `demo-factory eval` on new scene seeds, per split.
+HiveFormer (the default) trains on the keyframe export; ACT on the dense export (20 fps, joint-position
+actions), with the command the converter suggests for it. Every stage writes into its own folder under
 --out and is skipped when that folder is complete, so an interrupted run resumes where it stopped.
 At the end it prints the results table (also `OUT/eval/results.md`, `results.json`, `results.png`)
 and writes `OUT/reference_run.json` (configuration, stage wall times, success rates).
@@ -23,6 +25,8 @@ import sys
 import time
 from pathlib import Path
 
+from demo_factory.convert.usage import act_chunk, act_train_args
+
 BIN = Path(sys.executable).parent
 # Seen variations, one to three buttons: 205 (maroon) is past the paper's 0-199 (its train ids have no
 # one-button variation); 8, 24 (two buttons) and 0, 1 (three) are paper train variations.
@@ -35,6 +39,15 @@ REFERENCE_TEXT_ENCODER = "one_hot"
 # Keyframes of history: 10 holds a whole push_buttons episode (at most 10 keyframes), as the authors
 # feed whole episodes; with fewer, windows that slide past the episode start look alike.
 REFERENCE_HISTORY = 10
+# Each policy's run: seen variations, episodes, steps, batch, evaluation episodes. ACT takes no
+# instruction, so it learns one variation (blue: one button) and is evaluated on it alone.
+PRESETS = {
+    "hiveformer": {"variations": DEFAULT_VARIATIONS, "episodes_per_variation": 25, "test_episodes": 20,
+                   "steps": REFERENCE_STEPS, "batch_size": REFERENCE_BATCH_SIZE, "eval_episodes": 40},
+    "act": {"variations": ("blue",), "episodes_per_variation": 50, "test_episodes": 0,
+            "steps": 1000, "batch_size": 8, "eval_episodes": 20},
+}
+DENSE_FPS = 20  # the dense export's control rate (ACT)
 
 
 def train_command(dataset_root: Path, output_dir: Path, steps: int = REFERENCE_STEPS,
@@ -48,6 +61,23 @@ def train_command(dataset_root: Path, output_dir: Path, steps: int = REFERENCE_S
             f"--policy.n_history={n_history}", f"--steps={steps}",
             f"--batch_size={batch_size}", "--num_workers=1", f"--save_freq={steps}", f"--log_freq={log_freq}",
             "--wandb.enable=false", f"--output_dir={output_dir}"]
+
+
+def act_train_command(dataset_root: Path, output_dir: Path, steps: int, batch_size: int,
+                      log_freq: int = 50) -> list[str]:
+    """`lerobot-train` of ACT as the converter suggests it for the dense export (its chunk from the shortest
+    episode), at learning rate 1e-4 for the transformer and the backbone alike: ACT's preset 1e-5 is for
+    100k-step runs from ImageNet weights, and offline the backbone starts from random weights."""
+    info = json.loads((dataset_root / "meta" / "info.json").read_text())
+    shortest = min(e["frames"] for e in info["demo_factory"]["episodes"])
+    features = info["features"]
+    cameras = info["cameras"]
+    image_size = tuple(features[f"observation.images.{cameras[0]}"]["shape"][:2])
+    args = act_train_args("local/reference_train", dataset_root, cameras, image_size, output_dir, steps=steps,
+                          batch_size=batch_size, num_workers=1, log_freq=log_freq,
+                          chunk=act_chunk(shortest, info["fps"]))
+    return [str(BIN / args[0]), *args[1:], "--policy.optimizer_lr=1e-4", "--policy.optimizer_lr_backbone=1e-4",
+            f"--save_freq={steps}"]
 
 
 def train_log_timings(log: str) -> dict:
@@ -89,54 +119,70 @@ def stage(name: str, done: Path, timings: dict, command: list[str], out: Path) -
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(prog="python -m demo_factory.reference_run", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--out", type=Path, default=Path("outputs/reference"), help="run folder (resumed if present)")
+    parser.add_argument("--policy", choices=sorted(PRESETS), default="hiveformer",
+                        help="hiveformer on the keyframe export, or act on the dense export (default: hiveformer)")
+    parser.add_argument("--out", type=Path, help="run folder, resumed if present "
+                        "(default: outputs/reference, outputs/reference_act for ACT)")
     parser.add_argument("--variation", action="append", help="seen push_buttons variation id or colour sequence "
-                        f"(repeatable; default: {', '.join(DEFAULT_VARIATIONS)})")
-    parser.add_argument("--episodes-per-variation", type=int, default=25, help="training episodes per seen variation")
-    parser.add_argument("--test-episodes", type=int, default=20, help="episodes of test variations (unseen splits)")
+                        f"(repeatable; default: {', '.join(DEFAULT_VARIATIONS)}; ACT: blue)")
+    parser.add_argument("--episodes-per-variation", type=int, help="training episodes per seen variation "
+                        "(default: 25; ACT: 50)")
+    parser.add_argument("--test-episodes", type=int, help="episodes of test variations for the unseen splits "
+                        "(default: 20; ACT: 0)")
     parser.add_argument("--image-size", type=int, default=REFERENCE_IMAGE_SIZE,
                         help="camera size in pixels (multiple of 16)")
-    parser.add_argument("--steps", type=int, default=REFERENCE_STEPS, help="lerobot-train steps")
-    parser.add_argument("--batch-size", type=int, default=REFERENCE_BATCH_SIZE)
+    parser.add_argument("--steps", type=int, help=f"lerobot-train steps (default: {REFERENCE_STEPS}; ACT: 1000)")
+    parser.add_argument("--batch-size", type=int, help=f"default: {REFERENCE_BATCH_SIZE}; ACT: 8")
     parser.add_argument("--text-encoder", default=REFERENCE_TEXT_ENCODER, help="HiveFormer instruction encoder")
     parser.add_argument("--n-history", type=int, default=REFERENCE_HISTORY, help="HiveFormer keyframes of history")
-    parser.add_argument("--eval-episodes", type=int, default=40, help="evaluation episodes per split")
+    parser.add_argument("--eval-episodes", type=int, help="evaluation episodes per split (default: 40; ACT: 20)")
     parser.add_argument("--workers", type=int, default=2, help="generation processes")
     args = parser.parse_args(argv)
-    variations = args.variation or list(DEFAULT_VARIATIONS)
-    out = args.out
+    for name, value in PRESETS[args.policy].items():
+        if getattr(args, name, None) is None and name != "variations":
+            setattr(args, name, value)
+    variations = args.variation or list(PRESETS[args.policy]["variations"])
+    out = args.out or Path("outputs/reference" + ("" if args.policy == "hiveformer" else f"_{args.policy}"))
+    dense = args.policy != "hiveformer"
     out.mkdir(parents=True, exist_ok=True)
     timings: dict = {}
     began = time.time()
 
     raw, dataset, train, evaluation = out / "raw", out / "dataset", out / "train", out / "eval"
     generate = [str(BIN / "demo-factory"), "generate", "--task", "push_buttons", "--image-size", str(args.image_size),
-                "--workers", str(args.workers)]
+                "--workers", str(args.workers), *(["--dense-fps", str(DENSE_FPS)] if dense else [])]
     stage("generate_train", raw / "train" / ".complete", timings,
           generate + ["--split", "train", *[f"--variation={v}" for v in variations],
                       "--episodes-per-variation", str(args.episodes_per_variation), "--out", str(raw / "train")], out)
     (raw / "train" / ".complete").touch()
-    stage("generate_test", raw / "test" / ".complete", timings,
-          generate + ["--split", "test", "--episodes", str(args.test_episodes), "--seed", "1",
-                      "--out", str(raw / "test")], out)
-    (raw / "test" / ".complete").touch()
+    if args.test_episodes:
+        stage("generate_test", raw / "test" / ".complete", timings,
+              generate + ["--split", "test", "--episodes", str(args.test_episodes), "--seed", "1",
+                          "--out", str(raw / "test")], out)
+        (raw / "test" / ".complete").touch()
     if not (dataset / "train").exists():
         shutil.rmtree(dataset, ignore_errors=True)
     stage("convert", dataset / "train", timings,
           [str(BIN / "demo-factory"), "convert", "--in", str(raw), "--out", str(dataset), "--repo-id",
-           "local/reference", "--val-ratio", "0", "--no-progress"], out)
+           "local/reference", "--val-ratio", "0", "--no-progress",
+           *(["--granularity", "dense", "--action-space", "joints", "--fps", str(DENSE_FPS)] if dense else [])], out)
     checkpoint = train / "checkpoints" / "last" / "pretrained_model"
     if not checkpoint.exists():
         shutil.rmtree(train, ignore_errors=True)
-    stage("train", checkpoint, timings,
-          train_command(dataset / "train", train, args.steps, args.batch_size, args.text_encoder, args.n_history), out)
+    if dense:
+        command = act_train_command(dataset / "train", train, args.steps, args.batch_size)
+    else:
+        command = train_command(dataset / "train", train, args.steps, args.batch_size, args.text_encoder,
+                                args.n_history)
+    stage("train", checkpoint, timings, command, out)
     stage("eval", evaluation / "results.json", timings,
           [str(BIN / "demo-factory"), "eval", "--policy.path", str(checkpoint), "--dataset", str(dataset),
            "--episodes", str(args.eval_episodes), "--out", str(evaluation), "--overwrite"], out)
 
     results = json.loads((evaluation / "results.json").read_text())
     train_log = out / "train.log"
-    summary = {"configuration": vars(args) | {"out": str(out), "variations": variations},
+    summary = {"configuration": vars(args) | {"out": str(out), "variations": variations,
+                                              **({"dense_fps": DENSE_FPS, "action_space": "joints"} if dense else {})},
                "stage_seconds": timings, "train_step": train_log_timings(train_log.read_text() if train_log.exists() else ""), "wall_seconds_this_invocation": round(time.time() - began, 1),
                "results": results}
     (out / "reference_run.json").write_text(json.dumps(summary, indent=2, default=str) + "\n")

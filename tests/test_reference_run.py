@@ -23,3 +23,19 @@ def test_reference_run_chain_writes_its_results(tmp_path):
     assert main(arguments) == 0
     again = json.loads((out / "reference_run.json").read_text())
     assert again["stage_seconds"] == {} and again["results"] == summary["results"]
+
+
+def test_act_reference_trains_with_the_chunk_its_shortest_episode_holds(tmp_path):
+    from demo_factory.reference_run import act_train_command
+
+    meta = tmp_path / "train" / "meta"
+    meta.mkdir(parents=True)
+    info = {"fps": 20, "cameras": ["wrist"], "features": {"observation.images.wrist": {"shape": [64, 64, 3]}},
+            "demo_factory": {"episodes": [{"frames": 60}, {"frames": 31}]}}
+    (meta / "info.json").write_text(json.dumps(info))
+    command = act_train_command(tmp_path / "train", tmp_path / "out", steps=300, batch_size=8)
+    assert command[0].endswith("lerobot-train") and "--policy.type=act" in command
+    assert "--policy.chunk_size=31" in command and "--policy.n_action_steps=15" in command  # 2 s = 40 > 31
+    assert {"--steps=300", "--batch_size=8", "--save_freq=300", "--policy.pretrained_backbone_weights=null"} <= set(command)
+    features = json.loads(next(a for a in command if a.startswith("--policy.input_features=")).split("=", 1)[1])
+    assert features["observation.images.wrist"]["shape"] == [3, 64, 64]
