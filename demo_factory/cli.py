@@ -12,82 +12,22 @@ from pathlib import Path
 
 import numpy as np
 
+from demo_factory.cli_common import (
+    UsageError,
+    check_output_folder,
+    image_size,
+    non_negative_float,
+    positive_int,
+    run_command,
+    shard,
+)
+from demo_factory.collect.cli import add_parser as add_collect_parser
 from demo_factory.convert.cli import add_parser as add_convert_parser
 from demo_factory.evaluate.cli import add_parser as add_eval_parser
 from demo_factory.publish.cli import add_parser as add_publish_parser
-from demo_factory.generate import EXECUTORS
+from demo_factory.generate import EXECUTORS, MANIFEST_FILE
 from demo_factory.report import REPORT_FILES, write_report
 from demo_factory.tasks import SPLITS, TASKS, get_task
-
-MANIFEST_FILE = "manifest.json"
-
-
-class UsageError(Exception):
-    """Bad input a user can fix: reported as one line, exit code 2, nothing written."""
-
-
-# -- argument types ---------------------------------------------------------------------------
-def positive_int(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a whole number") from None
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"{value} is not allowed; must be at least 1")
-    return value
-
-
-def non_negative_float(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
-    if value < 0:
-        raise argparse.ArgumentTypeError(f"{value} is not allowed; must be 0 or more")
-    return value
-
-
-def shard(text: str) -> tuple[int, int]:
-    """``i/N`` with 0 <= i < N."""
-    try:
-        index, count = (int(v) for v in text.split("/"))
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a shard; use i/N, e.g. 0/4") from None
-    if not 0 <= index < count:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a shard; i/N needs 0 <= i < N")
-    return index, count
-
-
-def image_size(text: str) -> tuple[int, int]:
-    """``128`` or ``96x128`` (height x width)."""
-    parts = text.lower().split("x")
-    try:
-        values = [int(v) for v in parts]
-    except ValueError:
-        values = []
-    if len(values) not in (1, 2) or min(values) < 16 or max(values) > 1024:
-        raise argparse.ArgumentTypeError(f"{text!r} is not an image size; use N or HxW with 16..1024 pixels")
-    return (values[0], values[-1])
-
-
-# -- output folders ---------------------------------------------------------------------------
-def check_output_folder(out: Path, own_file) -> None:
-    """Refuse a path that is a file, holds files we did not write, or cannot be written."""
-    if out.exists():
-        if not out.is_dir():
-            raise UsageError(f"--out {out}: exists and is not a folder")
-        foreign = sorted(p.name for p in out.iterdir() if not own_file(p.name))
-        if foreign:
-            shown = ", ".join(foreign[:3]) + (" ..." if len(foreign) > 3 else "")
-            raise UsageError(f"--out {out}: the folder holds other files ({shown}); use an empty or new folder")
-        if not os.access(out, os.W_OK | os.X_OK):
-            raise UsageError(f"--out {out}: the folder is not writable")
-        return
-    parent = out.parent
-    while not parent.exists():
-        parent = parent.parent
-    if not parent.is_dir() or not os.access(parent, os.W_OK | os.X_OK):
-        raise UsageError(f"--out {out}: cannot create it ({parent} is not a writable folder)")
 
 
 def _is_generation_file(name: str) -> bool:
@@ -150,7 +90,7 @@ def generate_job(args) -> int:
     """One task's job: the requests, the manifest, the episodes and the generation summary."""
     from tqdm import tqdm
 
-    from demo_factory.generate import ManifestMismatch, job_requests, record_job, remove_stale_partials, run_requests, shard_requests
+    from demo_factory.generate import job_requests, record_job, remove_stale_partials, run_requests, shard_requests
 
     out = Path(args.out)
     named = named_variations(args)
@@ -170,9 +110,7 @@ def generate_job(args) -> int:
     requests = shard_requests(requests, args.shard)
     try:
         out.mkdir(parents=True, exist_ok=True)
-        record_job(out, parameters)
-    except ManifestMismatch as exc:
-        raise UsageError(str(exc)) from None
+        record_job(out, parameters)  # a ManifestMismatch is a UsageError
     except OSError as exc:
         raise UsageError(f"--out {out}: cannot write there ({exc.strerror})") from None
     remove_stale_partials(out, requests)
@@ -275,16 +213,13 @@ def print_generation_summary(summary: dict, out: Path) -> None:
 
 
 def cmd_inspect(args) -> int:
-    from demo_factory.record import RecordingError, read_episode
+    from demo_factory.record import read_episode
     from demo_factory.record.inspect import describe
 
     path = Path(args.recording)
     if not path.is_file():
         raise UsageError(f"{path}: no such recording file")
-    try:
-        print(describe(path, read_episode(path)))
-    except RecordingError as exc:
-        raise UsageError(str(exc)) from None
+    print(describe(path, read_episode(path)))  # a RecordingError is a UsageError
     return 0
 
 
@@ -353,23 +288,13 @@ def build_parser() -> argparse.ArgumentParser:
     add_convert_parser(commands)
     add_eval_parser(commands)
     add_publish_parser(commands)
-    from demo_factory.collect.cli import add_parser as add_collect_parser  # it imports this module's UsageError
-
     add_collect_parser(commands)
     return parser
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = build_parser()
-    args = parser.parse_args(argv)
-    try:
-        return args.run(args)
-    except UsageError as exc:
-        print(f"demo-factory {args.command}: error: {exc}", file=sys.stderr)
-        return 2
-    except KeyboardInterrupt:
-        print("interrupted; re-run the same command to finish (completed episodes are kept)", file=sys.stderr)
-        return 130
+    args = build_parser().parse_args(argv)
+    return run_command(args)
 
 
 if __name__ == "__main__":

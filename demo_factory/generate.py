@@ -18,8 +18,10 @@ from pathlib import Path
 
 import numpy as np
 
+from demo_factory.errors import UsageError
 from demo_factory.execution import KeyframeExecutor
 from demo_factory.planning import JointPlanner
+from demo_factory.ray_executor import run_on_ray
 from demo_factory.record import FORMAT_VERSION, EpisodeInfo, EpisodeWriter, Frame, Keyframe, RobotState
 from demo_factory.sim import DEFAULT_CAMERAS, Kinematics, World
 from demo_factory.sim.world import HOME
@@ -91,7 +93,7 @@ def shard_requests(requests: list[EpisodeRequest], shard: tuple[int, int] | None
 MANIFEST_FILE = "manifest.json"
 
 
-class ManifestMismatch(ValueError):
+class ManifestMismatch(UsageError, ValueError):
     """Resuming a job into a folder whose manifest recorded other parameters."""
 
 
@@ -257,9 +259,7 @@ def run_requests(requests: list[EpisodeRequest], out_dir: str | Path | None, wor
         else:
             todo.append((request, out_dir))
     if executor == "ray":
-        from demo_factory.ray_executor import run_on_ray
-
-        yield from run_on_ray(todo, address=address, num_cpus=workers)
+        yield from run_on_ray(run_episode, todo, address=address, num_cpus=workers)
         return
     if workers <= 1:
         for item in todo:

@@ -23,6 +23,7 @@ from huggingface_hub.hf_api import RepoFile
 from huggingface_hub.utils import filter_repo_objects
 from huggingface_hub.utils.sha import git_hash
 
+from demo_factory.cli_common import run_command
 from demo_factory.publish.cli import add_parser
 
 TOKEN = "hf_TestTokenThatMustNeverAppear0123456789"
@@ -150,7 +151,7 @@ def publish(*argv: str) -> int:
     parser = argparse.ArgumentParser(prog="demo-factory")
     add_parser(parser.add_subparsers(dest="command", required=True))
     args = parser.parse_args(["publish", *map(str, argv)])
-    return args.run(args)
+    return run_command(args)
 
 
 def split_names(dataset: Path) -> list[str]:

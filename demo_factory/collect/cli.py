@@ -8,7 +8,7 @@ import os
 import socket
 from pathlib import Path
 
-from demo_factory.cli import UsageError
+from demo_factory.cli_common import UsageError
 from demo_factory.collect.pictures import PictureCache, default_cache_folder
 from demo_factory.collect.server import CollectApp, CollectServer
 from demo_factory.collect.store import InstructionFile, check_language

@@ -4,7 +4,6 @@ from demo_factory.convert.converter import (
     DATASET_FORMAT_VERSION,
     ConvertError,
     ConvertOptions,
-    ConvertResult,
     check_dataset_provenance,
     convert,
 )
@@ -16,6 +15,7 @@ from demo_factory.convert.features import (
     unpack_depth,
     world_points,
 )
+from demo_factory.convert.result import ConvertResult
 from demo_factory.convert.splits import SPLITS, split_repo_id
 
 __all__ = [

@@ -8,7 +8,6 @@ import statistics
 from collections import Counter
 from pathlib import Path
 from string import Template
-from typing import TYPE_CHECKING
 
 import cv2
 import numpy as np
@@ -21,6 +20,7 @@ from demo_factory.convert.features import (
     KEYFRAME_FPS,
     STATE_NAMES,
 )
+from demo_factory.convert.result import ConvertResult
 from demo_factory.convert.splits import SplitPlan, SourceEpisode
 from demo_factory.convert.usage import act_chunk, gate_command, load_command, quote, train_args, train_policy
 from demo_factory.instructions import COLOUR_SYNONYMS, hiveformer_annotations
@@ -28,9 +28,6 @@ from demo_factory.instructions.human import sentence_rows
 from demo_factory.record import read_episode
 from demo_factory.suites import SUITES
 from demo_factory.tasks import TASKS, get_task
-
-if TYPE_CHECKING:
-    from demo_factory.convert.converter import ConvertResult
 
 TEMPLATE = Path(__file__).resolve().parents[2] / "dataset_cards" / "template.md"
 CONTACT_SHEET = "contact_sheet.png"

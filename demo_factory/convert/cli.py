@@ -3,14 +3,12 @@
 from __future__ import annotations
 
 import argparse
-import sys
 from pathlib import Path
 
-from demo_factory.convert.converter import ConvertError, ConvertOptions, ConvertResult, convert
+from demo_factory.convert.converter import ConvertOptions, convert
 from demo_factory.convert.features import ACTION_SPACES, DEFAULT_ACTION_SPACE, DEFAULT_CONTROL_FPS, GRANULARITIES
+from demo_factory.convert.result import ConvertResult
 from demo_factory.convert.usage import act_chunk, gate_command, load_command, quote, train_args, train_policy
-
-EXIT_USAGE = 2
 
 
 def add_parser(subparsers) -> argparse.ArgumentParser:
@@ -57,17 +55,13 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
 
 
 def run(args: argparse.Namespace) -> int:
-    """Run the sub-command; user errors print one line and return exit code 2."""
+    """Run the sub-command."""
     options = ConvertOptions(
         inputs=list(args.inputs), out=args.out, repo_id=args.repo_id or f"local/{args.out.resolve().name}",
         granularity=args.granularity, action_space=args.action_space, fps=args.fps, val_ratio=args.val_ratio, human_instructions=args.human_instructions,
         task=args.task, skip_invalid=args.skip_invalid, overwrite=args.overwrite, progress=args.progress,
     )
-    try:
-        result = convert(options)
-    except ConvertError as exc:
-        print(f"demo-factory convert: error: {exc}", file=sys.stderr)
-        return EXIT_USAGE
+    result = convert(options)  # a ConvertError is a UsageError: one line, exit 2 (cli_common.run_command)
     print(summary(result))
     return 0
 

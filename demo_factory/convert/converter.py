@@ -13,7 +13,7 @@ import shutil
 import time
 from collections import Counter
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -32,9 +32,12 @@ from demo_factory.convert.features import (
     episode_items,
     image_key,
 )
+from demo_factory.convert.card import write_card
+from demo_factory.convert.result import ConvertResult, SplitSummary
 from demo_factory.convert.splits import SourceEpisode, SplitPlan, plan_splits, split_repo_id
+from demo_factory.errors import UsageError
 from demo_factory.instructions import HumanInstruction, load_human_instructions, shipped_human_instructions
-from demo_factory.instructions.human import HumanAssignment, sentence_rows
+from demo_factory.instructions.human import sentence_rows
 from demo_factory.record import Episode, RecordingError, iter_episode_paths, read_episode
 from demo_factory.tasks import TASKS, get_task
 
@@ -46,7 +49,7 @@ GENERATION_SUMMARIES = "generation_summary*.json"  # written by `demo-factory ge
 MULTI_TASK = "multi_task"  # the dataset's task label when the inputs' tasks form no named suite
 
 
-class ConvertError(Exception):
+class ConvertError(UsageError):
     """A problem the user can fix (bad option, bad input); the message is one line."""
 
 
@@ -64,42 +67,6 @@ class ConvertOptions:
     skip_invalid: bool = False
     overwrite: bool = False
     progress: bool = True
-
-
-@dataclass
-class SplitSummary:
-    name: str
-    repo_id: str
-    instruction_source: str
-    episodes: int
-    frames: int
-    variations: int
-    shortest_episode: int = 0  # frames of the split's shortest episode
-
-
-@dataclass
-class ConvertResult:
-    out: Path
-    repo_id: str
-    task: str
-    granularity: str
-    fps: int
-    cameras: list[str]
-    image_size: tuple[int, int]
-    splits: list[SplitSummary]
-    skipped_splits: list[tuple[str, str]]  # (split, why)
-    invalid: list[tuple[Path, str]]  # recordings left out with --skip-invalid
-    sources: list[SourceEpisode]
-    human_file: Path | None
-    human_assignment: HumanAssignment | None
-    human_rows: list[HumanInstruction] | None  # every row of the file for the task, blank ones included
-    seconds: float
-    frames_written: int
-    command: str  # the convert command line that reproduces this output
-    action_space: str | None = None  # dense exports: "joints" or "ee"
-    recorded_fps: float = 0.0  # the recordings' dense rate (dense exports)
-    generation_summaries: list[dict] = field(default_factory=list)  # from the input folders
-    other_tasks: dict[str, int] = field(default_factory=dict)
 
 
 def find_recordings(inputs: list[Path]) -> list[Path]:
@@ -503,9 +470,7 @@ def convert(options: ConvertOptions, log: Callable[[str], None] = print) -> Conv
             other_tasks=found.other_tasks, action_space=action_space, recorded_fps=found.recorded_fps,
             generation_summaries=[g for g in find_generation_summaries(options.inputs) if g.get("task") in found.tasks],
         )
-        from demo_factory.convert.card import write_card  # after the datasets: it reads their first frames
-
-        write_card(staging, result, plans)
+        write_card(staging, result, plans)  # after the datasets: it reads their first frames
         if out.exists():
             retired = out.parent / f".{out.name}.old-{os.getpid()}"
             out.rename(retired)

@@ -14,13 +14,10 @@ import sys
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
+from demo_factory.cli_common import UsageError, image_size, positive_int
 from demo_factory.tasks import SPLITS, TASKS
 
 TASK_SPLITS = SPLITS  # without a dataset: the task's own train / test variations, synthetic instructions
-
-
-class EvalUsageError(Exception):
-    """Bad evaluation input: one line, exit code 2, nothing written."""
 
 
 @dataclass
@@ -33,8 +30,6 @@ class Control:
 
 
 def add_parser(commands) -> argparse.ArgumentParser:
-    from demo_factory.cli import image_size, positive_int
-
     parser = commands.add_parser(
         "eval", help="evaluate a policy closed-loop, per split",
         description="Roll a policy out in the tasks it was trained on. A keyframe policy's predicted keyframe is "
@@ -97,20 +92,20 @@ def _control(args, export: dict | None, source: str) -> Control:
 
     space = args.action_space or (export or {}).get("action_space") or KEYFRAME
     if space not in EVAL_ACTION_SPACES:
-        raise EvalUsageError(f"unknown --action-space {space!r}; accepted: {', '.join(EVAL_ACTION_SPACES)}")
+        raise UsageError(f"unknown --action-space {space!r}; accepted: {', '.join(EVAL_ACTION_SPACES)}")
     if export is not None and args.action_space and args.action_space != export["action_space"]:
-        raise EvalUsageError(f"--action-space {args.action_space} does not match {source}, exported with action space "
+        raise UsageError(f"--action-space {args.action_space} does not match {source}, exported with action space "
                              f"{export['action_space']}")
     dense_export = export if export and export["action_space"] != KEYFRAME else {}
     fps = args.fps or dense_export.get("fps") or DEFAULT_CONTROL_FPS
     try:
         control_period(fps)
     except ValueError as exc:
-        raise EvalUsageError(f"--fps: {exc}") from None
+        raise UsageError(f"--fps: {exc}") from None
     longest = dense_export.get("longest_seconds")
     max_seconds = args.max_seconds or (round(DENSE_TIME_FACTOR * longest, 1) if longest else 60.0)
     if max_seconds <= 0:
-        raise EvalUsageError(f"--max-seconds {max_seconds:g} is out of range; accepted: a number of seconds > 0")
+        raise UsageError(f"--max-seconds {max_seconds:g} is out of range; accepted: a number of seconds > 0")
     return Control(space, fps, max_seconds)
 
 
@@ -122,44 +117,44 @@ def _plan(args) -> tuple[str, dict[str, list], tuple[int, int], Control]:
 
     if args.dataset is None:
         if args.task is None:
-            raise EvalUsageError("give --dataset (a converted dataset) or --task (the task's own variations)")
+            raise UsageError("give --dataset (a converted dataset) or --task (the task's own variations)")
         splits = (args.splits or ",".join(TASK_SPLITS)).split(",")
         unknown = [s for s in splits if s not in TASK_SPLITS]
         if unknown:
-            raise EvalUsageError(f"unknown split {unknown[0]!r} without --dataset; accepted: {', '.join(TASK_SPLITS)}")
+            raise UsageError(f"unknown split {unknown[0]!r} without --dataset; accepted: {', '.join(TASK_SPLITS)}")
         plan = {s: default_episodes(args.task, s, args.episodes, args.seed) for s in splits}
         export = trained_export(checkpoint) if checkpoint is not None and not args.action_space else None
         control = _control(args, export, "the checkpoint's training dataset")
         return args.task, plan, args.image_size or (128, 128), control
     root = Path(args.dataset)
     if not root.is_dir():
-        raise EvalUsageError(f"--dataset {root}: no such folder")
+        raise UsageError(f"--dataset {root}: no such folder")
     available = sorted(p.name for p in root.iterdir() if (p / "meta" / "info.json").is_file())
     if not available:
-        raise EvalUsageError(f"--dataset {root}: holds no converted split folders")
+        raise UsageError(f"--dataset {root}: holds no converted split folders")
     splits = args.splits.split(",") if args.splits else available
     unknown = [s for s in splits if s not in available]
     if unknown:
-        raise EvalUsageError(f"--splits: {unknown[0]!r} is not in {root}; accepted: {', '.join(available)}")
+        raise UsageError(f"--splits: {unknown[0]!r} is not in {root}; accepted: {', '.join(available)}")
     plan = {}
     for split in splits:
         try:
             plan[split] = split_episodes(root / split, split, args.episodes, args.seed)
         except (FileNotFoundError, ValueError, KeyError) as exc:
-            raise EvalUsageError(str(exc)) from None
+            raise UsageError(str(exc)) from None
     tasks = {episodes[0].task for episodes in plan.values()}
     if len(tasks) != 1:
-        raise EvalUsageError(f"--dataset {root}: splits of several tasks ({', '.join(sorted(tasks))})")
+        raise UsageError(f"--dataset {root}: splits of several tasks ({', '.join(sorted(tasks))})")
     task = tasks.pop()
     if args.task and args.task != task:
-        raise EvalUsageError(f"--task {args.task} does not match the dataset's task {task}")
+        raise UsageError(f"--task {args.task} does not match the dataset's task {task}")
     info = json.loads((root / splits[0] / "meta" / "info.json").read_text())
     shapes = [f["shape"] for k, f in info["features"].items() if k.startswith("observation.images.")]
     size = args.image_size or (tuple(shapes[0][:2]) if shapes else (128, 128))
     exports = {split: dataset_export(root / split) for split in splits}
     spaces = sorted({e["action_space"] for e in exports.values()})
     if len(spaces) != 1:
-        raise EvalUsageError(f"--dataset {root}: splits of several action spaces ({', '.join(spaces)})")
+        raise UsageError(f"--dataset {root}: splits of several action spaces ({', '.join(spaces)})")
     export = exports[splits[0]]
     longest = [e["longest_seconds"] for e in exports.values() if e["longest_seconds"]]
     export = {**export, "longest_seconds": max(longest) if longest else None}
@@ -173,30 +168,26 @@ def run(args) -> int:
     from demo_factory.evaluate.policies import CurrentPosePolicy, ExpertPolicy, LeRobotPolicy
     from demo_factory.evaluate.runner import run_episode, summarise, write_results
 
-    try:
-        if args.policy_path is not None and not (Path(args.policy_path) / "config.json").is_file():
-            raise EvalUsageError(f"--policy.path {args.policy_path}: not a LeRobot checkpoint (no config.json)")
-        task, plan, size, control = _plan(args)
-        out = Path(args.out)
-        if out.exists() and any(out.iterdir()) and not args.overwrite:
-            raise EvalUsageError(f"--out {out}: exists and is not empty; pass --overwrite to replace it")
-        if args.expert:
-            policy = ExpertPolicy()
-        elif args.current_pose:
-            policy = CurrentPosePolicy()
-        else:
-            path = Path(args.policy_path)
-            trained = trained_export(path)
-            if trained is not None and trained["action_space"] != control.action_space:
-                raise EvalUsageError(f"--policy.path {path}: trained on a {trained['action_space']} export, but the "
-                                     f"evaluation's action space is {control.action_space}")
-            try:
-                policy = LeRobotPolicy(path, device=args.device)
-            except ValueError as exc:
-                raise EvalUsageError(str(exc)) from None
-    except EvalUsageError as exc:
-        print(f"demo-factory eval: error: {exc}", file=sys.stderr)
-        return 2
+    if args.policy_path is not None and not (Path(args.policy_path) / "config.json").is_file():
+        raise UsageError(f"--policy.path {args.policy_path}: not a LeRobot checkpoint (no config.json)")
+    task, plan, size, control = _plan(args)
+    out = Path(args.out)
+    if out.exists() and any(out.iterdir()) and not args.overwrite:
+        raise UsageError(f"--out {out}: exists and is not empty; pass --overwrite to replace it")
+    if args.expert:
+        policy = ExpertPolicy()
+    elif args.current_pose:
+        policy = CurrentPosePolicy()
+    else:
+        path = Path(args.policy_path)
+        trained = trained_export(path)
+        if trained is not None and trained["action_space"] != control.action_space:
+            raise UsageError(f"--policy.path {path}: trained on a {trained['action_space']} export, but the "
+                             f"evaluation's action space is {control.action_space}")
+        try:
+            policy = LeRobotPolicy(path, device=args.device)
+        except ValueError as exc:
+            raise UsageError(str(exc)) from None
     if out.exists():
         shutil.rmtree(out)
     staging = out.with_name(f".{out.name}.partial")

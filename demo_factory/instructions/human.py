@@ -46,12 +46,13 @@ from importlib import resources
 from pathlib import Path
 from typing import Generic, TypeVar
 
+from demo_factory.errors import UsageError
 from demo_factory.tasks import TASKS, Task, Variation, get_task
 
 FIELDS = ("task", "variation_id", "colours", "instruction", "author", "language", "timestamp")
 
 
-class HumanInstructionError(ValueError):
+class HumanInstructionError(UsageError, ValueError):
     """A human-instruction file that breaks the format; the message names the file and line."""
 
 

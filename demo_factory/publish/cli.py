@@ -3,10 +3,9 @@
 from __future__ import annotations
 
 import argparse
-import sys
 from pathlib import Path
 
-from demo_factory.publish.plan import PublishError, describe_plan, human_size, plan_publish
+from demo_factory.publish.plan import describe_plan, human_size, plan_publish
 
 HUB_URL = "https://huggingface.co/datasets/"
 
@@ -37,17 +36,14 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
 
 def run(args: argparse.Namespace) -> int:
     """Run the sub-command: exit 0, 2 for bad input, 1 for credential or Hub problems (one line on stderr)."""
-    try:
-        plan = plan_publish(args.dataset, args.repo_id, private=args.private)
-        if args.dry_run:
-            print(describe_plan(plan))
-            return 0
-        from demo_factory.publish.hub import publish  # huggingface_hub + lerobot: only when publishing
+    # A PublishError is a UsageError with its own exit code (cli_common.run_command prints it).
+    plan = plan_publish(args.dataset, args.repo_id, private=args.private)
+    if args.dry_run:
+        print(describe_plan(plan))
+        return 0
+    from demo_factory.publish.hub import publish  # huggingface_hub + lerobot: only when publishing
 
-        report = publish(plan)
-    except PublishError as exc:
-        print(f"demo-factory publish: error: {exc}", file=sys.stderr)
-        return exc.exit_code
+    report = publish(plan)
     print(f"\npublished {args.dataset} as {report.user}:")
     for repo in report.repos:
         sent = (f"{len(repo.uploaded)} dataset files ({human_size(repo.uploaded_bytes)})" if repo.uploaded

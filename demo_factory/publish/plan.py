@@ -14,8 +14,9 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from demo_factory.convert.card import CONTACT_SHEET, hub_card
-from demo_factory.convert.converter import ConvertError, check_dataset_provenance
+from demo_factory.convert.converter import check_dataset_provenance
 from demo_factory.convert.splits import SPLITS
+from demo_factory.errors import UsageError
 
 CARD = "README.md"
 LEROBOT_IGNORED = ("images",)  # top-level folders LeRobotDataset.push_to_hub never uploads
@@ -23,7 +24,7 @@ EXIT_USAGE = 2
 EXIT_HUB = 1
 
 
-class PublishError(Exception):
+class PublishError(UsageError):
     """A problem the user can fix, reported as one line; ``exit_code`` 2 for usage, 1 for the Hub."""
 
     def __init__(self, message: str, exit_code: int = EXIT_USAGE):
@@ -102,10 +103,7 @@ def find_splits(dataset: Path) -> dict[str, Path]:
         if info.get("codebase_version") != "v3.0":
             raise PublishError(f"{root} is a LeRobot dataset of format {info.get('codebase_version')!r}; "
                                "only v3.0 (LeRobot 0.4) is published")
-        try:
-            check_dataset_provenance(info.get("demo_factory"), root)
-        except ConvertError as error:
-            raise PublishError(str(error)) from None
+        check_dataset_provenance(info.get("demo_factory"), root)  # a ConvertError is a UsageError (exit 2)
     order = list(SPLITS)
     return {n: found[n] for n in sorted(found, key=lambda n: (order.index(n) if n in order else len(order), n))}
 

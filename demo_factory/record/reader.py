@@ -13,6 +13,7 @@ from mcap.reader import NonSeekingReader
 from mcap_protobuf.decoder import DecoderFactory as ProtobufDecoderFactory
 from scipy.spatial.transform import Rotation
 
+from demo_factory.errors import UsageError
 from demo_factory.record import schema
 from demo_factory.record.episode import (
     FORMAT_VERSION,
@@ -27,7 +28,7 @@ from demo_factory.record.episode import (
 )
 
 
-class RecordingError(Exception):
+class RecordingError(UsageError):
     """A recording that cannot be read: truncated, corrupt, foreign, or from a future format."""
 
 
