@@ -20,7 +20,8 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from demo_factory.generate import EpisodeRequest, episode_seed, job_requests, library_versions, run_requests
+from demo_factory.generate import EpisodeRequest, episode_seed, job_requests, run_requests
+from demo_factory.record import library_versions
 from demo_factory.reference_run import REFERENCE_IMAGE_SIZE
 from demo_factory.tasks import get_task
 

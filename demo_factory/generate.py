@@ -13,23 +13,17 @@ import os
 import time
 import zlib
 from dataclasses import dataclass, field
-from importlib import metadata
 from pathlib import Path
 
 import numpy as np
 
 from demo_factory.errors import UsageError
-from demo_factory.execution import KeyframeExecutor
 from demo_factory.planning import JointPlanner
 from demo_factory.ray_executor import run_on_ray
-from demo_factory.record import FORMAT_VERSION, EpisodeInfo, EpisodeWriter, Frame, Keyframe, RobotState
+from demo_factory.record import FORMAT_VERSION, EpisodeInfo, EpisodeWriter, Keyframe, library_versions
+from demo_factory.rollout import SETTLE_AFTER_STEPS, KeyframeExecutor, observe, start_scene
 from demo_factory.sim import DEFAULT_CAMERAS, Kinematics, World
-from demo_factory.sim.world import HOME
 from demo_factory.tasks import SPLITS, get_task
-
-SETTLE_BEFORE_STEPS = 48  # let the scene come to rest before the first observation
-SETTLE_AFTER_STEPS = 120  # "stable for a moment" before the success check
-VERSIONED_PACKAGES = ("demo_factory", "pybullet", "ompl", "mcap", "numpy")
 
 
 @dataclass(frozen=True)
@@ -131,41 +125,16 @@ def remove_stale_partials(folder: Path, requests: list[EpisodeRequest]) -> int:
     return removed
 
 
-def library_versions() -> dict[str, str]:
-    return {name: metadata.version(name) for name in VERSIONED_PACKAGES}
-
-
-def observe(world: World, keyframe_index: int, is_keyframe: bool, is_dense: bool) -> Frame:
-    return Frame(
-        time_ns=world.time_ns,
-        is_keyframe=is_keyframe,
-        is_dense=is_dense,
-        keyframe_index=keyframe_index,
-        robot=RobotState(
-            joint_positions=world.joint_positions(),
-            gripper_pose=world.gripper_pose(),
-            gripper_open=world.gripper_command,
-            finger_width=world.finger_width(),
-        ),
-        cameras=world.render_cameras(),
-    )
-
-
 def run_episode(request: EpisodeRequest, out_dir: str | Path | None) -> EpisodeOutcome:
     """Generate one episode; with ``out_dir`` record it there (kept only if the task succeeds)."""
     began = time.perf_counter()
     task = get_task(request.task)
     variation = task.variation(request.variation_id)
     instruction = task.instruction(variation, request.episode_seed)
-    world = World(DEFAULT_CAMERAS, request.image_size)
+    world = start_scene(task, variation, request.episode_seed, DEFAULT_CAMERAS, request.image_size)
     kinematics = Kinematics()
     writer = None
     try:
-        world.reset_arm(HOME, gripper_open=1.0 if task.gripper_starts_open else 0.0)
-        task.build_scene(world, variation, np.random.default_rng(request.episode_seed))
-        world.step(SETTLE_BEFORE_STEPS)
-        world.step_count = 0  # the episode's clock starts once the scene is at rest
-        world.step_callbacks.append(task.on_step)
         info = EpisodeInfo(
             format_version=FORMAT_VERSION, task=task.name, split=request.split, variation_id=variation.id,
             variation=list(variation.colours), episode_seed=request.episode_seed, instruction=instruction,

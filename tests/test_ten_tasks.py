@@ -6,11 +6,10 @@ import numpy as np
 import pytest
 
 from demo_factory.cli import main
-from demo_factory.execution import KeyframeExecutor
-from demo_factory.generate import SETTLE_AFTER_STEPS, SETTLE_BEFORE_STEPS, job_requests, run_requests
+from demo_factory.generate import job_requests, run_requests
 from demo_factory.planning import JointPlanner
-from demo_factory.sim import Kinematics, World
-from demo_factory.sim.world import HOME
+from demo_factory.rollout import SETTLE_AFTER_STEPS, KeyframeExecutor, start_scene
+from demo_factory.sim import Kinematics
 from demo_factory.suites import SUITES
 from demo_factory.tasks import TASKS, get_task, motions
 from demo_factory.tasks.base import CATEGORIES
@@ -54,13 +53,8 @@ def test_at_least_three_instruction_templates_naming_the_goal(name):
 
 def _scene(name, seed=3, variation_index=0):
     task = get_task(name)
-    world = World(image_size=(32, 32))
-    world.reset_arm(HOME, gripper_open=1.0 if task.gripper_starts_open else 0.0)
     variation = task.split_variations("train")[variation_index]
-    task.build_scene(world, variation, np.random.default_rng(seed))
-    world.step(SETTLE_BEFORE_STEPS)
-    world.step_callbacks.append(task.on_step)
-    return task, world
+    return task, start_scene(task, variation, seed, image_size=(32, 32))
 
 
 def _wrong_keyframes(task, world):

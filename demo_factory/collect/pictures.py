@@ -21,8 +21,9 @@ import cv2
 import numpy as np
 import pybullet as p
 
-from demo_factory.generate import SETTLE_BEFORE_STEPS, episode_seed
-from demo_factory.sim import DEFAULT_CAMERAS, HOME, CameraSpec, World
+from demo_factory.generate import episode_seed
+from demo_factory.rollout import start_scene
+from demo_factory.sim import DEFAULT_CAMERAS, CameraSpec, World
 from demo_factory.sim.camera import render
 from demo_factory.sim.world import HAND_LINK
 from demo_factory.tasks import Task, Variation, get_task
@@ -145,11 +146,8 @@ def render_variation(task_name: str, variation_id: int) -> dict[str, np.ndarray]
     task = get_task(task_name)  # a fresh instance: building a scene stores state on the task
     variation = task.variation(variation_id)
     cameras = tuple(replace(c, fov_deg=ZOOMED_FOV_DEG) for c in DEFAULT_CAMERAS if c.name in SCENE_CAMERAS)
-    world = World(cameras, (PICTURE_SIZE, PICTURE_SIZE))
+    world = start_scene(task, variation, picture_seed(task, variation), cameras, (PICTURE_SIZE, PICTURE_SIZE))
     try:
-        world.reset_arm(HOME, gripper_open=1.0 if task.gripper_starts_open else 0.0)
-        task.build_scene(world, variation, np.random.default_rng(picture_seed(task, variation)))
-        world.step(SETTLE_BEFORE_STEPS)
         views = world.render_cameras()
         pictures = {}
         for name, camera in views.items():

@@ -31,11 +31,10 @@ from demo_factory.convert.features import (
     image_key,
     observation_item,
 )
-from demo_factory.execution import KeyframeExecutor
-from demo_factory.generate import SETTLE_BEFORE_STEPS, observe
 from demo_factory.planning import JointPlanner
 from demo_factory.sim import DEFAULT_CAMERAS, Kinematics, World
-from demo_factory.sim.world import HOME, JOINT_LOWER, JOINT_UPPER, TIME_STEP
+from demo_factory.sim.world import JOINT_LOWER, JOINT_UPPER, TIME_STEP
+from demo_factory.rollout import KeyframeExecutor, observe, start_scene
 from demo_factory.tasks import get_task
 
 DEFAULT_STEP_SLACK = 2
@@ -79,13 +78,7 @@ def gym_observation(frame) -> dict:
 def episode_world(episode: EvalEpisode, image_size) -> tuple[World, object]:
     """The scene of an evaluation episode at rest, its clock at 0, as the generator builds it: (world, task)."""
     task = get_task(episode.task)
-    world = World(DEFAULT_CAMERAS, tuple(image_size))
-    world.reset_arm(HOME, gripper_open=1.0 if task.gripper_starts_open else 0.0)
-    task.build_scene(world, task.variation(episode.variation_id), np.random.default_rng(episode.seed))
-    world.step(SETTLE_BEFORE_STEPS)
-    world.step_count = 0
-    world.step_callbacks.append(task.on_step)
-    return world, task
+    return start_scene(task, task.variation(episode.variation_id), episode.seed, DEFAULT_CAMERAS, image_size), task
 
 
 class _TaskEnv(gym.Env):

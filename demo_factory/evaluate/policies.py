@@ -14,9 +14,9 @@ from pathlib import Path
 import numpy as np
 
 from demo_factory.convert.features import observation_item, robot_action
-from demo_factory.execution import KeyframeExecutor
 from demo_factory.planning import JointPlanner
 from demo_factory.record import RobotState
+from demo_factory.rollout import KeyframeExecutor
 
 
 class ExpertPolicy:

@@ -11,8 +11,7 @@ import numpy as np
 
 from demo_factory.convert.converter import ConvertError, check_dataset_provenance
 from demo_factory.evaluate.env import KEYFRAME, EvalEpisode, KeyframeEnv, evaluation_seed
-from demo_factory.generate import library_versions
-from demo_factory.record import FORMAT_VERSION, EpisodeInfo, EpisodeWriter, Keyframe
+from demo_factory.record import FORMAT_VERSION, EpisodeInfo, EpisodeWriter, Keyframe, library_versions
 
 # The HiveFormer paper's success rates (%) for its multi-variation tasks, for the results table.
 PAPER_RESULTS = {

@@ -11,9 +11,10 @@ from demo_factory.record.episode import (
     RobotState,
 )
 from demo_factory.record.reader import RecordingError, iter_episode_paths, read_episode
-from demo_factory.record.writer import EpisodeWriter
+from demo_factory.record.writer import EpisodeWriter, library_versions
 
 __all__ = [
+    "library_versions",
     "FORMAT_VERSION",
     "CameraObservation",
     "Episode",

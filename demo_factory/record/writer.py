@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import os
+from importlib import metadata
 from pathlib import Path
 
 import cv2
@@ -23,6 +24,12 @@ from demo_factory.record import schema
 from demo_factory.record.episode import EpisodeInfo, Frame, Keyframe, PlannerAttempt
 
 MAX_DEPTH_MM = np.iinfo(np.uint16).max
+VERSIONED_PACKAGES = ("demo_factory", "pybullet", "ompl", "mcap", "numpy")  # recorded with every episode
+
+
+def library_versions() -> dict[str, str]:
+    """The versions of the packages that decide an episode's content, for the recording's result."""
+    return {name: metadata.version(name) for name in VERSIONED_PACKAGES}
 
 
 def _stamp(time_ns: int) -> Timestamp:
