@@ -38,21 +38,21 @@ test: install
 	$(BIN)/python -m pytest
 
 bench: install
-	$(BIN)/python -m demo_factory.bench --out bench/results.json
+	$(BIN)/python -m demo_factory.tools.bench --out bench/results.json
 
 # The reference run (not part of `make test`): push_buttons demos → dataset → lerobot-train HiveFormer
 # → closed-loop eval, on the CPU in about an hour; resumes if interrupted. Results in outputs/reference/.
 reference: install
-	$(BIN)/python -m demo_factory.reference_run --out outputs/reference
+	$(BIN)/python -m demo_factory.tools.reference_run --out outputs/reference
 
 # The same chain for ACT on a dense export of one variation (outputs/reference_act/).
 reference-act: install
-	$(BIN)/python -m demo_factory.reference_run --policy act --out outputs/reference_act
+	$(BIN)/python -m demo_factory.tools.reference_run --policy act --out outputs/reference_act
 
 # The committed cards of the standard datasets (dataset_cards/<name>/README.md + contact sheet),
 # from a few freshly generated episodes per split in a temporary folder.
 cards: install
-	$(BIN)/python -m demo_factory.publish.cards --out dataset_cards
+	$(BIN)/python -m demo_factory.tools.cards --out dataset_cards
 
 clean:
 	rm -rf $(VENV) data outputs

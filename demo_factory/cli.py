@@ -3,14 +3,9 @@
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import sys
-import time
-from collections import Counter
 from pathlib import Path
-
-import numpy as np
 
 from demo_factory.cli_common import (
     UsageError,
@@ -24,16 +19,17 @@ from demo_factory.cli_common import (
 from demo_factory.collect.cli import add_parser as add_collect_parser
 from demo_factory.convert.cli import add_parser as add_convert_parser
 from demo_factory.evaluate.cli import add_parser as add_eval_parser
+from demo_factory.generate import (
+    EXECUTORS,
+    REPORT_FILES,
+    GenerationJob,
+    is_generation_file,
+    run_job,
+    summary_text,
+    write_report,
+)
 from demo_factory.publish.cli import add_parser as add_publish_parser
-from demo_factory.generate import EXECUTORS, MANIFEST_FILE
-from demo_factory.report import REPORT_FILES, write_report
 from demo_factory.tasks import SPLITS, TASKS, get_task
-
-
-def _is_generation_file(name: str) -> bool:
-    return (name.endswith(".mcap") or name.endswith(".mcap.partial") or name in (MANIFEST_FILE, *REPORT_FILES)
-            or (name.startswith("generation_summary") and name.endswith(".json"))
-            or (name.startswith("generation_log") and name.endswith(".jsonl")))
 
 
 # -- commands ---------------------------------------------------------------------------------
@@ -75,7 +71,7 @@ def generate_suite(args) -> int:
     out = Path(args.out)
     check_output_folder(out, lambda name: name in tasks or name in REPORT_FILES)
     for task in tasks:
-        check_output_folder(out / task, _is_generation_file)
+        check_output_folder(out / task, is_generation_file)
     codes = []
     for task in tasks:
         job = argparse.Namespace(**{**vars(args), "task": task, "out": str(out / task),
@@ -87,61 +83,54 @@ def generate_suite(args) -> int:
 
 
 def generate_job(args) -> int:
-    """One task's job: the requests, the manifest, the episodes and the generation summary."""
+    """One task's job from the command line: checked, run with a progress bar, summarised."""
     from tqdm import tqdm
 
-    from demo_factory.generate import job_requests, record_job, remove_stale_partials, run_requests, shard_requests
-
-    out = Path(args.out)
-    named = named_variations(args)
-    args.split = args.split or ("test" if named else "train")
-    for variation in named:
-        try:
-            get_task(args.task).check_split_membership(variation, args.split)
-        except ValueError as exc:
-            raise UsageError(str(exc)) from None
-    check_output_folder(out, _is_generation_file)
-    episodes = args.episodes_per_variation * len(named) if args.episodes_per_variation else args.episodes
-    requests = job_requests(args.task, args.split, episodes, args.seed, variations=named or None,
-                            image_size=args.image_size, dense_fps=args.dense_fps)
-    parameters = {"task": args.task, "split": args.split, "episodes": episodes, "seed": args.seed,
-                  "image_size": list(args.image_size), "dense_fps": args.dense_fps,
-                  "variations": [v.id for v in named] or None}
-    requests = shard_requests(requests, args.shard)
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-        record_job(out, parameters)  # a ManifestMismatch is a UsageError
-    except OSError as exc:
-        raise UsageError(f"--out {out}: cannot write there ({exc.strerror})") from None
-    remove_stale_partials(out, requests)
-    began = time.perf_counter()
+    job = generation_job(args)
+    check_output_folder(job.out, is_generation_file)
+    bar = tqdm(total=len(job.requests()), desc=f"{job.task}/{job.split}", unit="episode", file=sys.stderr)
     outcomes = []
-    bar = tqdm(total=len(requests), desc=f"{args.task}/{args.split}", unit="episode", file=sys.stderr)
+
+    def progress(outcome) -> None:
+        outcomes.append(outcome)
+        bar.update(1)
+        bar.set_postfix(kept=sum(o.kept for o in outcomes), failed=sum(not o.kept for o in outcomes))
+
     try:
-        for outcome in run_requests(requests, out, workers=args.workers, executor=args.executor,
-                                    address=args.address):
-            outcomes.append(outcome)
-            bar.update(1)
-            bar.set_postfix(kept=sum(o.kept for o in outcomes), failed=sum(not o.kept for o in outcomes))
+        summary = run_job(job, progress)
     except OSError as exc:
         bar.close()
+        if not outcomes:
+            raise UsageError(f"--out {job.out}: cannot write there ({exc.strerror})") from None
         kept = sum(o.kept for o in outcomes)
-        print(f"demo-factory generate: error: writing to {out} failed ({exc.strerror}); episodes finished "
+        print(f"demo-factory generate: error: writing to {job.out} failed ({exc.strerror}); episodes finished "
               f"before it: {kept}, all complete and valid; fix the cause and re-run the same command to resume",
               file=sys.stderr)
         return 1
     bar.close()
-    summary = generation_summary(args, outcomes, time.perf_counter() - began)
-    (out / f"generation_summary_{args.task}_{args.split}.json").write_text(json.dumps(summary, indent=2) + "\n")
-    with open(out / f"generation_log_{args.task}_{args.split}.jsonl", "a") as log:  # every attempt, every run
-        for o in outcomes:
-            if not o.resumed:
-                log.write(json.dumps({"variation_id": o.request.variation_id, "episode_seed": o.request.episode_seed,
-                                      "kept": o.kept, "reason": o.reason, "seconds": round(o.seconds, 3),
-                                      "keyframes": o.keyframes, "planner_attempts": o.attempt_log}) + "\n")
-    print_generation_summary(summary, out)
-    write_report(out)
+    print(summary_text(summary, job.out))
+    write_report(job.out)
     return 0 if summary["kept"] > 0 else 1
+
+
+def generation_job(args) -> GenerationJob:
+    """The job the ``generate`` arguments describe (named variations checked against the split)."""
+    named = named_variations(args)
+    split = args.split or ("test" if named else "train")
+    for variation in named:
+        try:
+            get_task(args.task).check_split_membership(variation, split)
+        except ValueError as exc:
+            raise UsageError(str(exc)) from None
+    episodes = args.episodes_per_variation * len(named) if args.episodes_per_variation else args.episodes
+    job = GenerationJob(task=args.task, split=split, episodes=episodes, out=Path(args.out), seed=args.seed,
+                        variations=named, image_size=tuple(args.image_size), dense_fps=args.dense_fps,
+                        workers=args.workers, shard=args.shard, executor=args.executor, address=args.address)
+    job.command = job.command_line([f"--variation={v}" for v in args.variation or []]
+                                   + (["--variations-from", args.variations_from] if args.variations_from else [])
+                                   + (["--episodes-per-variation", str(args.episodes_per_variation)]
+                                      if args.episodes_per_variation else []))
+    return job
 
 
 def named_variations(args) -> list:
@@ -160,56 +149,6 @@ def named_variations(args) -> list:
     if args.episodes_per_variation and not named:
         raise UsageError("--episodes-per-variation needs --variation or --variations-from")
     return list(dict.fromkeys(named))
-
-
-def generation_summary(args, outcomes, total_seconds: float = 0.0) -> dict:
-    """The figures a user wants after a generation run (also written to ``generation_summary_<task>_<split>.json``)."""
-    fresh = [o for o in outcomes if not o.resumed]
-    planning = [s for o in fresh for s in o.planning_seconds]
-    attempts = Counter(a for o in fresh for a in o.attempts_per_transition)
-    return {
-        "command": " ".join(["demo-factory", "generate", "--task", args.task, "--split", args.split, "--episodes",
-                             str(args.episodes), "--seed", str(args.seed), "--out", str(args.out)]
-                            + [f"--variation={v}" for v in args.variation or []]
-                            + (["--variations-from", args.variations_from] if args.variations_from else [])
-                            + (["--episodes-per-variation", str(args.episodes_per_variation)]
-                               if args.episodes_per_variation else [])
-                            + (["--image-size", "x".join(map(str, args.image_size))]
-                               if tuple(args.image_size) != (128, 128) else [])
-                            + (["--dense-fps", f"{args.dense_fps:g}"] if args.dense_fps else [])),
-        "task": args.task,
-        "split": args.split,
-        "requested": len(outcomes),
-        "kept": sum(o.kept for o in outcomes),
-        "already_present": sum(o.resumed for o in outcomes),
-        "failed": [
-            {"variation_id": o.request.variation_id, "episode_seed": o.request.episode_seed, "reason": o.reason}
-            for o in outcomes if not o.kept
-        ],
-        "failure_reasons": dict(Counter(o.reason for o in outcomes if not o.kept)),
-        "planner_attempts_histogram": {str(k): attempts[k] for k in sorted(attempts)},
-        "planning_seconds_median": float(np.median(planning)) if planning else None,
-        "planning_seconds_p95": float(np.percentile(planning, 95)) if planning else None,
-        "seconds_per_episode": float(np.mean([o.seconds for o in fresh])) if fresh else None,
-        "total_seconds": total_seconds,
-    }
-
-
-def print_generation_summary(summary: dict, out: Path) -> None:
-    print(f"\n{summary['task']}/{summary['split']}: kept {summary['kept']} of {summary['requested']} episodes "
-          f"({summary['already_present']} already present) in {out}")
-    if summary["failed"]:
-        reasons = ", ".join(f"{k}: {v}" for k, v in summary["failure_reasons"].items())
-        print(f"  failed: {len(summary['failed'])} ({reasons})")
-        for f in summary["failed"]:
-            print(f"    variation {f['variation_id']} seed {f['episode_seed']}: {f['reason']}")
-    hist = ", ".join(f"{k}: {v}" for k, v in summary["planner_attempts_histogram"].items())
-    if hist:
-        print(f"  planner attempts per planned transition: {hist}")
-        print(f"  planning time per transition: median {summary['planning_seconds_median']:.3f} s, "
-              f"p95 {summary['planning_seconds_p95']:.3f} s")
-    if summary["seconds_per_episode"] is not None:
-        print(f"  seconds per episode: {summary['seconds_per_episode']:.2f}")
 
 
 def cmd_inspect(args) -> int:

@@ -4,7 +4,7 @@ import json
 
 import pytest
 
-from demo_factory.reference_run import main
+from demo_factory.tools.reference_run import main
 
 
 @pytest.mark.slow
@@ -26,7 +26,7 @@ def test_reference_run_chain_writes_its_results(tmp_path):
 
 
 def test_act_reference_trains_with_the_chunk_its_shortest_episode_holds(tmp_path):
-    from demo_factory.reference_run import act_train_command
+    from demo_factory.tools.reference_run import act_train_command
 
     meta = tmp_path / "train" / "meta"
     meta.mkdir(parents=True)

@@ -2,7 +2,6 @@
 
 import json
 
-import numpy as np
 import pytest
 
 from demo_factory.cli import main
@@ -11,7 +10,7 @@ from demo_factory.planning import JointPlanner
 from demo_factory.rollout import SETTLE_AFTER_STEPS, KeyframeExecutor, start_scene
 from demo_factory.sim import Kinematics
 from demo_factory.suites import SUITES
-from demo_factory.tasks import TASKS, get_task, motions
+from demo_factory.tasks import TASKS, get_task
 from demo_factory.tasks.base import CATEGORIES
 
 TEN = SUITES["ten_tasks"]
@@ -57,54 +56,6 @@ def _scene(name, seed=3, variation_index=0):
     return task, start_scene(task, variation, seed, image_size=(32, 32))
 
 
-def _wrong_keyframes(task, world):
-    """A deliberately wrong action per task: the wrong object, the wrong place, or stopping short."""
-    grip = motions.top_down(0.0)
-    name = task.name
-    if name == "reach_target":
-        other = next(c for c in task.spheres if c != task.target)
-        return motions.reach(task.spheres[other], grip)
-    if name == "push_button":
-        other = next(c for c in task.buttons if c != task.instructed.colours[0])
-        return motions.press(task.cap_top(other), grip, 0.06 + world.fingertip_offset(), 0.009 - world.fingertip_offset())
-    if name in ("pick_and_lift", "pick_up_cup"):  # the distractor instead
-        objects = task.blocks if name == "pick_and_lift" else task.cups
-        instructed = task.instructed
-        task.instructed = next(c for c in objects if c != instructed)
-        keyframes = task.expert(world)
-        task.instructed = instructed
-        return keyframes
-    if name == "slide_block_to_target":  # a push that stops halfway
-        keyframes = task.expert(world)
-        start, end = np.array(keyframes[1].pose[:3]), np.array(keyframes[2].pose[:3])
-        middle = tuple((start + end) / 2) + keyframes[2].pose[3:]
-        return [keyframes[0], keyframes[1], type(keyframes[2])(middle, 0.0, "cartesian")]
-    if name in ("put_knife_on_chopping_board", "stack_wine"):  # put the object back down beside the target
-        keyframes = task.expert(world)
-        put_back = keyframes[1].pose
-        return keyframes[:4] + motions.place(put_back[:3], put_back[3:])
-    if name == "put_money_in_safe":  # the wrong shelf
-        shelf = task.shelf
-        task.shelf = next(s for s in task.palette if s != shelf)
-        keyframes = task.expert(world)
-        task.shelf = shelf
-        return keyframes
-    if name == "take_money_out_safe":  # grasp the note but let go before pulling it out
-        keyframes = task.expert(world)
-        return keyframes[:3] + [type(keyframes[2])(keyframes[2].pose, 1.0, "gripper")]
-    if name == "take_umbrella_out_of_umbrella_stand":  # lift only part of the way
-        keyframes = task.expert(world)
-        short = np.array(keyframes[2].pose[:3]) + [0.0, 0.0, 0.06]
-        return keyframes[:3] + motions.lift(short, keyframes[2].pose[3:])
-    if name == "turn_tap":  # the other tap
-        target = task.target
-        task.target = next(t for t in task.taps if t != target)
-        keyframes = task.expert(world)
-        task.target = target
-        return keyframes
-    raise AssertionError(f"no wrong action written for {name}")
-
-
 @pytest.mark.parametrize("name", (*TEN, *EXTRA))
 def test_success_is_false_at_reset_and_after_a_wrong_action(name):
     task, world = _scene(name)
@@ -112,7 +63,7 @@ def test_success_is_false_at_reset_and_after_a_wrong_action(name):
     try:
         assert not task.success(world)
         executor = KeyframeExecutor(world, kinematics, JointPlanner(), 3, task.graspable_bodies())
-        for index, target in enumerate(_wrong_keyframes(task, world), start=1):
+        for index, target in enumerate(task.wrong_keyframes(world), start=1):
             assert executor.execute(target, index).ok
         world.step(SETTLE_AFTER_STEPS)
         assert not task.success(world)

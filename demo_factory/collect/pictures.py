@@ -19,7 +19,6 @@ from pathlib import Path
 
 import cv2
 import numpy as np
-import pybullet as p
 
 from demo_factory.generate import episode_seed
 from demo_factory.rollout import start_scene
@@ -54,7 +53,7 @@ class Picture:
 def pictures_for(task: Task) -> tuple[Picture, ...]:
     """The pictures shown for every variation of ``task``, in page order."""
     scene = tuple(Picture(camera, f"scene, {camera.replace('_', ' ')} camera") for camera in SCENE_CAMERAS)
-    if task.name == "tower":
+    if task.goal_sketch == "stack":
         return (*scene, Picture("goal_render", "when done, close up"), Picture("goal", "when done"))
     return (*scene, Picture("goal", "order"))
 
@@ -150,17 +149,16 @@ def render_variation(task_name: str, variation_id: int) -> dict[str, np.ndarray]
     try:
         views = world.render_cameras()
         pictures = {}
+        points = task.goal_points(world, variation)
+        place = task.goal_place()
         for name, camera in views.items():
             image = cv2.cvtColor(camera.rgb, cv2.COLOR_RGB2BGR)
-            if task.name == "tower":
-                mark_target(image, camera, np.array([*task.target, 0.0]))
-                points = [world.body_pose(task.cubes[c])[0] + [0, 0, 0.0225] for c in variation.colours]
-            else:
-                points = [task.cap_top(c) for c in variation.colours]
+            if place is not None:
+                mark_target(image, camera, place)
             mark_order(image, camera, points)
             pictures[name] = image
-        if task.name == "tower":
-            pictures["goal_render"] = _render_stacked(world, task, variation)
+        if task.goal_sketch == "stack":
+            pictures["goal_render"] = _render_goal(world, task, variation)
             pictures["goal"] = draw_tower(variation.colours)
         else:
             pictures["goal"] = draw_button_order(variation.colours)
@@ -169,18 +167,13 @@ def render_variation(task_name: str, variation_id: int) -> dict[str, np.ndarray]
     return {name: cv2.cvtColor(image, cv2.COLOR_BGR2RGB) for name, image in pictures.items()}
 
 
-def _render_stacked(world: World, task: Task, variation: Variation) -> np.ndarray:
-    """A close-up of the target with the instructed cubes teleported into the finished tower."""
-    from demo_factory.tasks.tower import CUBE
-
-    for level, colour in enumerate(variation.colours):
-        position = (float(task.target[0]), float(task.target[1]), (level + 0.5) * CUBE)
-        p.resetBasePositionAndOrientation(task.cubes[colour], position, (0, 0, 0, 1), physicsClientId=world.client)
-    target = np.array([*task.target, 0.0])
+def _render_goal(world: World, task: Task, variation: Variation) -> np.ndarray:
+    """A close-up of the goal place with the instructed objects teleported into the finished goal."""
+    top = task.show_goal(world, variation)
+    target = task.goal_place()
     close_up = replace(CLOSE_UP, eye=tuple(target + CLOSE_UP.eye), target=tuple(target + CLOSE_UP.target))
     camera = render(world.client, close_up, (PICTURE_SIZE, PICTURE_SIZE), world.link_pose(HAND_LINK))
     image = cv2.cvtColor(camera.rgb, cv2.COLOR_RGB2BGR)
-    top = np.array([*task.target, len(variation.colours) * CUBE])
     head = project(top + np.array([0.0, 0.0, BADGE_LIFT]), camera)
     cv2.arrowedLine(image, head, project(top, camera), INK, 3, cv2.LINE_AA, tipLength=0.3)
     return image

@@ -36,6 +36,7 @@ from demo_factory.convert.card import write_card
 from demo_factory.convert.result import ConvertResult, SplitSummary
 from demo_factory.convert.splits import SourceEpisode, SplitPlan, plan_splits, split_repo_id
 from demo_factory.errors import UsageError
+from demo_factory.generate.folder import SUMMARY_GLOB
 from demo_factory.instructions import HumanInstruction, load_human_instructions, shipped_human_instructions
 from demo_factory.instructions.human import sentence_rows
 from demo_factory.record import Episode, RecordingError, iter_episode_paths, read_episode
@@ -45,7 +46,6 @@ from demo_factory.tasks import TASKS, get_task
 # paper (push_buttons, tower); datasets without it (version 1) used an older numbering.
 DATASET_FORMAT_VERSION = 2
 IMAGE_WRITER_THREADS = 4  # PNG encoding in threads: the writer's bottleneck besides stats
-GENERATION_SUMMARIES = "generation_summary*.json"  # written by `demo-factory generate`, one per job
 MULTI_TASK = "multi_task"  # the dataset's task label when the inputs' tasks form no named suite
 
 
@@ -91,7 +91,7 @@ def find_generation_summaries(inputs: list[Path]) -> list[dict]:
     summaries = []
     for item in inputs:
         if item.is_dir():
-            for path in sorted(item.rglob(GENERATION_SUMMARIES)):
+            for path in sorted(item.rglob(SUMMARY_GLOB)):
                 try:
                     summaries.append(json.loads(path.read_text(encoding="utf-8")))
                 except (OSError, ValueError):

@@ -31,6 +31,9 @@ POSE_NAMES = ["x", "y", "z", "qx", "qy", "qz", "qw"]
 STATE_NAMES = [*POSE_NAMES, "gripper_open", *(f"joint_{i}" for i in range(7))]
 ACTION_NAMES = [*POSE_NAMES, "open"]
 CALIBRATION_NAMES = ["fx", "fy", "cx", "cy", *(f"T_world_cam_{r}{c}" for r in range(4) for c in range(4))]
+STATE_SIZE = len(STATE_NAMES)  # 15: gripper pose, open, 7 joints
+ACTION_SIZE = len(ACTION_NAMES)  # 8: the next keyframe's pose and open (a dense joints action has 8 too)
+CALIBRATION_SIZE = len(CALIBRATION_NAMES)  # 20 per camera: intrinsics, then the 4x4 camera-to-world matrix
 DEPTH_ENCODING = {
     "unit": "mm",
     "channels": "R = mm // 256, G = mm % 256, B = 0",
@@ -83,9 +86,9 @@ def dataset_features(cameras: list[str], image_size: tuple[int, int], action_spa
     for camera in cameras:
         features[image_key(camera)] = dict(image)
         features[depth_key(camera)] = dict(image)
-        features[calibration_key(camera)] = {"dtype": "float32", "shape": (20,), "names": CALIBRATION_NAMES}
-    features["observation.state"] = {"dtype": "float32", "shape": (15,), "names": STATE_NAMES}
-    features["action"] = {"dtype": "float32", "shape": (8,), "names": action_names(action_space)}
+        features[calibration_key(camera)] = {"dtype": "float32", "shape": (CALIBRATION_SIZE,), "names": CALIBRATION_NAMES}
+    features["observation.state"] = {"dtype": "float32", "shape": (STATE_SIZE,), "names": STATE_NAMES}
+    features["action"] = {"dtype": "float32", "shape": (ACTION_SIZE,), "names": action_names(action_space)}
     features["variation_id"] = {"dtype": "int64", "shape": (1,), "names": None}
     features["keyframe_index"] = {"dtype": "int64", "shape": (1,), "names": None}
     return features

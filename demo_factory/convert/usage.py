@@ -12,7 +12,7 @@ import json
 import shlex
 from pathlib import Path
 
-from demo_factory.convert.features import image_key
+from demo_factory.convert.features import STATE_SIZE, image_key
 
 
 def load_command(repo_id: str, root: Path) -> str:
@@ -25,7 +25,7 @@ def act_input_features(cameras: list[str], image_size: tuple[int, int]) -> dict:
     """ACT's inputs restricted to the RGB cameras and the state (packed depth is no image to ACT)."""
     height, width = image_size
     features = {image_key(c): {"type": "VISUAL", "shape": [3, height, width]} for c in cameras}
-    features["observation.state"] = {"type": "STATE", "shape": [15]}
+    features["observation.state"] = {"type": "STATE", "shape": [STATE_SIZE]}
     return features
 
 

@@ -24,8 +24,11 @@ import gymnasium as gym
 import numpy as np
 
 from demo_factory.convert.features import (
+    ACTION_SIZE,
     ACTION_SPACES,
+    CALIBRATION_SIZE,
     DEFAULT_CONTROL_FPS,
+    STATE_SIZE,
     calibration_key,
     depth_key,
     image_key,
@@ -101,10 +104,10 @@ class _TaskEnv(gym.Env):
         pixels = {c.name: image for c in DEFAULT_CAMERAS} | {f"{c.name}_depth": image for c in DEFAULT_CAMERAS}
         self.observation_space = gym.spaces.Dict({
             "pixels": gym.spaces.Dict(pixels),
-            "agent_pos": gym.spaces.Box(-np.inf, np.inf, (15,), np.float32),
-            "environment_state": gym.spaces.Box(-np.inf, np.inf, (20 * len(DEFAULT_CAMERAS),), np.float32),
+            "agent_pos": gym.spaces.Box(-np.inf, np.inf, (STATE_SIZE,), np.float32),
+            "environment_state": gym.spaces.Box(-np.inf, np.inf, (CALIBRATION_SIZE * len(DEFAULT_CAMERAS),), np.float32),
         })
-        self.action_space = gym.spaces.Box(-np.inf, np.inf, (8,), np.float32)
+        self.action_space = gym.spaces.Box(-np.inf, np.inf, (ACTION_SIZE,), np.float32)
         self.episode: EvalEpisode | None = None
         self.task_description = ""
 

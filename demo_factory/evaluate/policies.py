@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from demo_factory.convert.features import observation_item, robot_action
+from demo_factory.convert.features import ACTION_SIZE, observation_item, robot_action
 from demo_factory.planning import JointPlanner
 from demo_factory.record import RobotState
 from demo_factory.rollout import KeyframeExecutor
@@ -120,8 +120,8 @@ class LeRobotPolicy:
         )
         self.name = f"{config.type} ({Path(path).name})"
         action = config.output_features.get("action")
-        if action is None or tuple(action.shape) != (8,):
-            raise ValueError(f"{path}: the policy's action is {action}; evaluation needs an 8-d action "
+        if action is None or tuple(action.shape) != (ACTION_SIZE,):
+            raise ValueError(f"{path}: the policy's action is {action}; evaluation needs a {ACTION_SIZE}-d action "
                              "(keyframe, joints or ee)")
 
     def reset(self, env) -> None:

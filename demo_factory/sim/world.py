@@ -114,6 +114,10 @@ class World:
         pos, orn = p.getBasePositionAndOrientation(body, physicsClientId=self.client)
         return np.array(pos), np.array(orn)
 
+    def set_body_pose(self, body: int, position, orientation) -> None:
+        """Teleport a body (no physics in between)."""
+        p.resetBasePositionAndOrientation(body, tuple(position), tuple(orientation), physicsClientId=self.client)
+
     def obstacle_bodies(self) -> list[int]:
         """Every body the planner must avoid (all but the robot)."""
         n = p.getNumBodies(physicsClientId=self.client)

@@ -164,6 +164,22 @@ class Task(ABC):
     def expert(self, world) -> list[KeyframeTarget]:
         """The scripted expert: keyframes from the scene's state (no rendering, no planning)."""
 
+    def wrong_keyframes(self, world) -> list[KeyframeTarget]:
+        """A deliberately wrong action for the scene (the wrong object, the wrong place, stopping short): the
+        tests check that `success` stays False after it."""
+        raise NotImplementedError(f"{self.name} has no wrong action written")
+
+    def expert_with(self, world, **attributes) -> list[KeyframeTarget]:
+        """The expert's keyframes as if the task's attributes (e.g. its target) were others; for wrong actions."""
+        saved = {name: getattr(self, name) for name in attributes}
+        for name, value in attributes.items():
+            setattr(self, name, value)
+        try:
+            return self.expert(world)
+        finally:
+            for name, value in saved.items():
+                setattr(self, name, value)
+
     def graspable_bodies(self) -> list[int]:
         """Bodies the gripper may pick up (the planner then moves them with the hand)."""
         return []
@@ -178,6 +194,24 @@ class Task(ABC):
     def scene_facts(self) -> dict:
         """Task-specific facts worth recording with the episode (object colours, positions)."""
         return {}
+
+    # -- the goal, shown to people who write instructions (demo_factory.collect) -------------------
+    # How the collection page sketches a variation's goal: "sequence" (the objects in order, left to
+    # right) or "stack" (bottom-up, plus a close-up of the finished goal, `show_goal`).
+    goal_sketch: str = "sequence"
+
+    def goal_points(self, world, variation: Variation) -> list[np.ndarray]:
+        """World points of the objects the instruction names, in its order (numbered in the pictures)."""
+        raise NotImplementedError(f"{self.name} does not mark its goal for the instruction-collection pictures")
+
+    def goal_place(self) -> np.ndarray | None:
+        """The world point where the goal is built (ringed in the pictures), or None."""
+        return None
+
+    def show_goal(self, world, variation: Variation) -> np.ndarray:
+        """Move the objects into the finished goal (for a close-up picture only); returns the world point on
+        top of it. Tasks with ``goal_sketch == "stack"`` provide it."""
+        raise NotImplementedError(f"{self.name} cannot show its finished goal")
 
 
 @cache

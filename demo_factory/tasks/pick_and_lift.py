@@ -63,6 +63,10 @@ class PickAndLift(Task):
     def graspable_bodies(self) -> list[int]:
         return list(self.blocks.values())
 
+    def wrong_keyframes(self, world) -> list[KeyframeTarget]:
+        """Pick and lift a distractor block."""
+        return self.expert_with(world, instructed=next(c for c in self.blocks if c != self.instructed))
+
     def success(self, world) -> bool:
         block = self.blocks[self.instructed]
         position, _ = world.body_pose(block)

@@ -66,6 +66,10 @@ class PickUpCup(Task):
     def graspable_bodies(self) -> list[int]:
         return list(self.cups.values())
 
+    def wrong_keyframes(self, world) -> list[KeyframeTarget]:
+        """Pick up the distractor cup."""
+        return self.expert_with(world, instructed=next(c for c in self.cups if c != self.instructed))
+
     def success(self, world) -> bool:
         cup = self.cups[self.instructed]
         return float(world.body_pose(cup)[0][2]) > LIFTED + WALL / 2 and held(world, cup)

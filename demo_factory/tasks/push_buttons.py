@@ -80,6 +80,12 @@ class PushButtons(Task):
                                        depth=PRESS_DEPTH - tip)
         return keyframes
 
+    def wrong_keyframes(self, world) -> list[KeyframeTarget]:
+        """Press a button the instruction does not start with."""
+        tip = world.fingertip_offset()
+        other = next(c for c in self.buttons if c != self.instructed.colours[0])
+        return motions.press(self.cap_top(other), TOP_DOWN, approach=APPROACH_HEIGHT + tip, depth=PRESS_DEPTH - tip)
+
     def on_step(self, world) -> None:
         for colour, body in self.buttons.items():
             down = p.getJointState(body, 0, physicsClientId=world.client)[0] < PRESSED_AT
@@ -89,6 +95,9 @@ class PushButtons(Task):
 
     def success(self, world) -> bool:
         return tuple(self.pressed_order) == self.instructed.colours
+
+    def goal_points(self, world, variation: Variation) -> list[np.ndarray]:
+        return [self.cap_top(colour) for colour in variation.colours]
 
     def scene_facts(self) -> dict:
         return {

@@ -77,6 +77,12 @@ class PutKnifeOnChoppingBoard(Task):
         local = Rotation.from_euler("z", -self.board_yaw).apply(np.asarray(point) - [*self.board_centre, 0.0])
         return abs(local[0]) < BOARD_HALF[0] and abs(local[1]) < BOARD_HALF[1]
 
+    def wrong_keyframes(self, world) -> list[KeyframeTarget]:
+        """Put the knife back down where it was."""
+        keyframes = self.expert(world)
+        put_back = keyframes[1].pose
+        return keyframes[:4] + motions.place(put_back[:3], put_back[3:])
+
     def success(self, world) -> bool:
         position, orientation = world.body_pose(self.knife)
         ends = [p.multiplyTransforms(position, orientation, (x, 0.0, 0.0), (0, 0, 0, 1))[0] for x in KNIFE_SPAN]

@@ -50,6 +50,10 @@ class PutMoneyInSafe(Task):
     def graspable_bodies(self) -> list[int]:
         return [self.note]
 
+    def wrong_keyframes(self, world) -> list[KeyframeTarget]:
+        """Put the money on another shelf."""
+        return self.expert_with(world, shelf=next(s for s in self.palette if s != self.shelf))
+
     def success(self, world) -> bool:
         position, _ = world.body_pose(self.note)
         return (self.safe.inside(position) and self.safe.shelf_of(world, self.note) == self.shelf

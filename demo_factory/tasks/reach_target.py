@@ -42,6 +42,11 @@ class ReachTarget(Task):
     def expert(self, world) -> list[KeyframeTarget]:
         return motions.reach(self.spheres[self.target], motions.top_down(0.0))
 
+    def wrong_keyframes(self, world) -> list[KeyframeTarget]:
+        """Reach the other sphere."""
+        other = next(c for c in self.spheres if c != self.target)
+        return motions.reach(self.spheres[other], motions.top_down(0.0))
+
     def success(self, world) -> bool:
         return float(np.linalg.norm(world.gripper_pose()[:3] - self.spheres[self.target])) < RADIUS
 

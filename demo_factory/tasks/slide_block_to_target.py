@@ -51,6 +51,13 @@ class SlideBlockToTarget(Task):
         end = [*(self.target - back_off + 0.004 * self.direction), PUSH_HEIGHT]
         return motions.push(start, end, motions.top_down(yaw))
 
+    def wrong_keyframes(self, world) -> list[KeyframeTarget]:
+        """A push that stops halfway."""
+        keyframes = self.expert(world)
+        start, end = np.array(keyframes[1].pose[:3]), np.array(keyframes[2].pose[:3])
+        middle = tuple((start + end) / 2) + tuple(keyframes[2].pose[3:])
+        return [keyframes[0], keyframes[1], KeyframeTarget(middle, 0.0, "cartesian")]
+
     def success(self, world) -> bool:
         position, _ = world.body_pose(self.block)
         return (float(np.linalg.norm(position[:2] - self.target)) < TOLERANCE and at_rest(world, self.block)

@@ -81,6 +81,12 @@ class StackWine(Task):
     def graspable_bodies(self) -> list[int]:
         return [self.bottle]
 
+    def wrong_keyframes(self, world) -> list[KeyframeTarget]:
+        """Put the bottle back down where it was."""
+        keyframes = self.expert(world)
+        put_back = keyframes[1].pose
+        return keyframes[:4] + motions.place(put_back[:3], put_back[3:])
+
     def success(self, world) -> bool:
         position, _ = world.body_pose(self.bottle)
         return (float(np.linalg.norm(position[:2] - self.slot_centre(self.slot))) < TOLERANCE

@@ -57,6 +57,11 @@ class TakeMoneyOutSafe(Task):
     def graspable_bodies(self) -> list[int]:
         return [self.note]
 
+    def wrong_keyframes(self, world) -> list[KeyframeTarget]:
+        """Grasp the note but let go before pulling it out."""
+        keyframes = self.expert(world)
+        return keyframes[:3] + [KeyframeTarget(keyframes[2].pose, 1.0, "gripper")]
+
     def success(self, world) -> bool:
         position, _ = world.body_pose(self.note)
         return position[0] < self.safe.front - OUT_OF_SAFE and resting_on(world, self.note, world.table)

@@ -81,6 +81,12 @@ class TakeUmbrellaOutOfUmbrellaStand(Task):
         position, orientation = world.body_pose(self.umbrella)
         return float(p.multiplyTransforms(position, orientation, (0, 0, -SHAFT_LENGTH / 2), (0, 0, 0, 1))[0][2])
 
+    def wrong_keyframes(self, world) -> list[KeyframeTarget]:
+        """Lift the umbrella only part of the way."""
+        keyframes = self.expert(world)
+        short = np.array(keyframes[2].pose[:3]) + [0.0, 0.0, 0.06]
+        return keyframes[:3] + motions.lift(short, keyframes[2].pose[3:])
+
     def success(self, world) -> bool:
         return self.tip_height(world) > STAND_HEIGHT + CLEAR and held(world, self.umbrella)
 

@@ -89,6 +89,20 @@ class Tower(Task):
                 return False
         return True
 
+    goal_sketch = "stack"
+
+    def goal_points(self, world, variation: Variation) -> list[np.ndarray]:
+        return [world.body_pose(self.cubes[colour])[0] + [0.0, 0.0, CUBE / 2] for colour in variation.colours]
+
+    def goal_place(self) -> np.ndarray:
+        return np.array([*self.target, 0.0])
+
+    def show_goal(self, world, variation: Variation) -> np.ndarray:
+        for level, colour in enumerate(variation.colours):
+            position = (float(self.target[0]), float(self.target[1]), (level + 0.5) * CUBE)
+            world.set_body_pose(self.cubes[colour], position, (0, 0, 0, 1))
+        return np.array([*self.target, len(variation.colours) * CUBE])
+
     def scene_facts(self) -> dict:
         return {
             "target": [round(float(v), 6) for v in self.target],

@@ -85,6 +85,10 @@ class TurnTap(Task):
             KeyframeTarget(motions.pose(motions.raised(grip, 0.08), turned), motions.OPEN, "cartesian"),
         ]
 
+    def wrong_keyframes(self, world) -> list[KeyframeTarget]:
+        """Turn the other tap."""
+        return self.expert_with(world, target=next(t for t in self.taps if t != self.target))
+
     def success(self, world) -> bool:
         other = next(t for t in TAPS if t != self.target)
         return (abs(self.handle_angle(world, self.target)) >= TURNED

@@ -6,7 +6,7 @@ temporary folder, with the same relative paths a user would type (``data/raw/<na
 ``dataset_cards/<name>/README.md`` and ``contact_sheet.png``. The ten-task suite is one multi-task
 dataset (``generate --suite ten_tasks``), so it has one card like the others.
 
-    python -m demo_factory.publish.cards --out dataset_cards [--datasets push_buttons tower ten_tasks]
+    python -m demo_factory.tools.cards --out dataset_cards [--datasets push_buttons tower ten_tasks]   (or `make cards`)
 """
 
 from __future__ import annotations
@@ -19,8 +19,10 @@ import sys
 import tempfile
 from pathlib import Path
 
+from demo_factory.convert import ConvertOptions, convert
 from demo_factory.convert.card import CONTACT_SHEET
-from demo_factory.suites import SUITES
+from demo_factory.generate import GenerationJob, run_job
+from demo_factory.suites import SUITES, suite_tasks
 
 OWNER = "demo-factory"  # the Hub namespace the standard datasets' repo ids name
 STANDARD = ("push_buttons", "tower", "ten_tasks")
@@ -40,19 +42,16 @@ def _inside(folder: Path):
 def make_card(name: str, out: Path, train_episodes: int, test_episodes: int, seed: int = 0) -> Path:
     """Generate, convert and keep the card of standard dataset ``name`` (a task, or the ten-task
     suite as one multi-task dataset): ``out/README.md`` + contact sheet."""
-    from demo_factory.cli import main
-
     with tempfile.TemporaryDirectory(prefix=f"cards-{name}-") as tmp, _inside(Path(tmp)):
         raw, converted = Path("data/raw") / name, Path("data/lerobot") / name
         for split, episodes in (("train", train_episodes), ("test", test_episodes)):
-            which = (["--suite", name, "--episodes-per-task", str(episodes)] if name in SUITES
-                     else ["--task", name, "--episodes", str(episodes)])
-            code = main(["generate", *which, "--split", split, "--seed", str(seed), "--out", str(raw / split)])
-            if code != 0:
-                raise RuntimeError(f"generating {name}/{split} for its card failed (exit code {code})")
-        code = main(["convert", "--in", str(raw), "--out", str(converted), "--repo-id", f"{OWNER}/{name}", "--no-progress"])
-        if code != 0:
-            raise RuntimeError(f"converting {name} for its card failed (exit code {code})")
+            folder = raw / split
+            for task in suite_tasks(name) if name in SUITES else [name]:
+                job = GenerationJob(task=task, split=split, episodes=episodes, seed=seed,
+                                    out=folder / task if name in SUITES else folder, workers=os.cpu_count() or 1)
+                if run_job(job)["kept"] == 0:
+                    raise RuntimeError(f"generating {task}/{split} for the card of {name} kept no episode")
+        convert(ConvertOptions(inputs=[raw], out=converted, repo_id=f"{OWNER}/{name}", progress=False), log=lambda _: None)
         out.mkdir(parents=True, exist_ok=True)
         shutil.copyfile(converted / "README.md", out / "README.md")
         shutil.copyfile(converted / CONTACT_SHEET, out / CONTACT_SHEET)
@@ -67,7 +66,7 @@ def make_cards(out: Path, datasets: list[str], train_episodes: int, test_episode
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m demo_factory.publish.cards", description=__doc__.split("\n\n")[0])
+    parser = argparse.ArgumentParser(prog="python -m demo_factory.tools.cards", description=__doc__.split("\n\n")[0])
     parser.add_argument("--out", type=Path, default=Path("dataset_cards"), help="folder of the committed cards")
     parser.add_argument("--datasets", nargs="+", choices=STANDARD, default=list(STANDARD))
     parser.add_argument("--train-episodes", type=int, default=4, help="train-variation episodes per task (default 4)")

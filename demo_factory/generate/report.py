@@ -9,8 +9,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-SUMMARY_GLOB = "generation_summary*.json"
-REPORT_FILES = ("report.json", "report.md", "report.png")
+from demo_factory.generate.folder import SUMMARY_GLOB
 COLUMNS = ("task", "split", "requested", "kept", "failed", "success", "attempts 1/2/3+", "plan median s",
            "plan p95 s", "s/episode", "total s")
 

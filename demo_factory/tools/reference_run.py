@@ -1,7 +1,7 @@
 """The reference run: proof, on one CPU, that a policy trained on our datasets succeeds closed loop.
 
-    python -m demo_factory.reference_run [--out outputs/reference] [--steps 1500] ...   (or `make reference`)
-    python -m demo_factory.reference_run --policy act [--out outputs/reference_act]     (or `make reference-act`)
+    python -m demo_factory.tools.reference_run [--out outputs/reference] [--steps 1500] ...   (or `make reference`)
+    python -m demo_factory.tools.reference_run --policy act [--out outputs/reference_act]     (or `make reference-act`)
 
 The whole chain with the real components and the commands a user runs: `demo-factory generate`
 (push_buttons demonstrations of a few train variations, plus test-variation episodes for the unseen
@@ -117,7 +117,7 @@ def stage(name: str, done: Path, timings: dict, command: list[str], out: Path) -
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m demo_factory.reference_run", description=__doc__,
+    parser = argparse.ArgumentParser(prog="python -m demo_factory.tools.reference_run", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--policy", choices=sorted(PRESETS), default="hiveformer",
                         help="hiveformer on the keyframe export, or act on the dense export (default: hiveformer)")

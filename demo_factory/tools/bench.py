@@ -22,10 +22,10 @@ from tqdm import tqdm
 
 from demo_factory.generate import EpisodeRequest, episode_seed, job_requests, run_requests
 from demo_factory.record import library_versions
-from demo_factory.reference_run import REFERENCE_IMAGE_SIZE
+from demo_factory.tools.reference_run import REFERENCE_IMAGE_SIZE
 from demo_factory.tasks import get_task
 
-REPO = Path(__file__).resolve().parent.parent
+REPO = Path(__file__).resolve().parents[2]
 HIVEFORMER_MEASURE = REPO / "policies" / "lerobot_policy_hiveformer" / "measure_compute.py"
 
 
@@ -236,7 +236,7 @@ def bench_hiveformer_training(episodes: int, train_steps: int) -> dict:
     one-hot instructions, one loader worker) on a dataset generated at that size.
     """
     from demo_factory.convert.converter import ConvertOptions, convert
-    from demo_factory.reference_run import train_command, train_log_timings
+    from demo_factory.tools.reference_run import train_command, train_log_timings
 
     figures = {}
     with tempfile.TemporaryDirectory() as folder:
@@ -260,7 +260,7 @@ def bench_hiveformer_training(episodes: int, train_steps: int) -> dict:
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m demo_factory.bench", description=__doc__)
+    parser = argparse.ArgumentParser(prog="python -m demo_factory.tools.bench", description=__doc__)
     parser.add_argument("--out", default="bench/results.json", help="where to write the figures (JSON)")
     parser.add_argument("--quick", action="store_true", help="small counts: a smoke run, not figures to report")
     parser.add_argument("--only", help="comma-separated sections to run (default: all): " + ", ".join(SECTIONS))

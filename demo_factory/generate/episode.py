@@ -1,4 +1,4 @@
-"""Generates expert episodes: scene → expert keyframes → planned execution in physics → MCAP.
+"""One expert episode: scene → expert keyframes → planned execution in physics → MCAP.
 
 An episode is fully determined by ``(task, variation, episode_seed)`` (plus the camera settings):
 the same inputs give a byte-identical recording, in any process and in any order.
@@ -7,9 +7,6 @@ the same inputs give a byte-identical recording, in any process and in any order
 from __future__ import annotations
 
 import dataclasses
-import json
-import multiprocessing
-import os
 import time
 import zlib
 from dataclasses import dataclass, field
@@ -17,9 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from demo_factory.errors import UsageError
 from demo_factory.planning import JointPlanner
-from demo_factory.ray_executor import run_on_ray
 from demo_factory.record import FORMAT_VERSION, EpisodeInfo, EpisodeWriter, Keyframe, library_versions
 from demo_factory.rollout import SETTLE_AFTER_STEPS, KeyframeExecutor, observe, start_scene
 from demo_factory.sim import DEFAULT_CAMERAS, Kinematics, World
@@ -62,67 +57,6 @@ def episode_seed(base_seed: int, task: str, split: str, index: int) -> int:
     """The seed of the ``index``-th episode of a job: a pure function of the job's parameters."""
     entropy = [base_seed, zlib.crc32(task.encode()), SPLITS.index(split), index]
     return int(np.random.SeedSequence(entropy).generate_state(1)[0])
-
-
-def job_requests(task: str, split: str, episodes: int, base_seed: int, variations=None, **settings) -> list[EpisodeRequest]:
-    """The requests of a job: episode i uses variation i mod n and its own seed.
-
-    The variations are the split's (by default) or the ones named by the user.
-    """
-    variations = variations or get_task(task).split_variations(split)
-    return [
-        EpisodeRequest(task, split, variations[i % len(variations)].id, episode_seed(base_seed, task, split, i), **settings)
-        for i in range(episodes)
-    ]
-
-
-def shard_requests(requests: list[EpisodeRequest], shard: tuple[int, int] | None) -> list[EpisodeRequest]:
-    """Shard ``i/N`` of a job: every N-th request from the i-th; the shards' union is the job."""
-    if shard is None:
-        return requests
-    index, count = shard
-    return requests[index::count]
-
-
-MANIFEST_FILE = "manifest.json"
-
-
-class ManifestMismatch(UsageError, ValueError):
-    """Resuming a job into a folder whose manifest recorded other parameters."""
-
-
-def record_job(folder: Path, parameters: dict) -> None:
-    """Record a job's parameters in the folder's manifest, or refuse if the same job had others.
-
-    A folder may hold several jobs (e.g. a task's train and test splits); a job is identified by
-    its task and split. Shards of a job share its parameters.
-    """
-    path = folder / MANIFEST_FILE
-    manifest = json.loads(path.read_text()) if path.exists() else {"jobs": {}}
-    key = f"{parameters['task']}/{parameters['split']}"
-    previous = manifest["jobs"].get(key)
-    if previous is not None and previous != parameters:
-        differences = "; ".join(
-            f"{name}: {previous.get(name)!r} before, {parameters.get(name)!r} now"
-            for name in sorted(set(previous) | set(parameters)) if previous.get(name) != parameters.get(name)
-        )
-        raise ManifestMismatch(f"{folder} already holds the {key} job with other parameters ({differences}); "
-                               "use the same parameters to resume it, or another folder")
-    manifest["jobs"][key] = parameters
-    partial = path.with_name(f".{MANIFEST_FILE}.partial")
-    partial.write_text(json.dumps(manifest, indent=2, sort_keys=True) + "\n")
-    os.replace(partial, path)
-
-
-def remove_stale_partials(folder: Path, requests: list[EpisodeRequest]) -> int:
-    """Delete partial files an interrupted run of these requests left behind; returns how many."""
-    removed = 0
-    for request in requests:
-        partial = folder / f".{request.filename}.partial"
-        if partial.exists():
-            partial.unlink()
-            removed += 1
-    return removed
 
 
 def run_episode(request: EpisodeRequest, out_dir: str | Path | None) -> EpisodeOutcome:
@@ -202,37 +136,3 @@ def run_episode(request: EpisodeRequest, out_dir: str | Path | None) -> EpisodeO
     finally:
         world.close()
         kinematics.close()
-
-
-def _run_in_worker(args) -> EpisodeOutcome:
-    request, out_dir = args
-    return run_episode(request, out_dir)
-
-
-EXECUTORS = ("process", "ray")
-
-
-def run_requests(requests: list[EpisodeRequest], out_dir: str | Path | None, workers: int = 1,
-                 executor: str = "process", address: str | None = None):
-    """Generate every request, yielding outcomes in order.
-
-    ``executor="process"`` uses ``workers`` local processes; ``"ray"`` schedules the same
-    per-episode work on a Ray cluster (``address``, or a local one). A request whose recording
-    already exists in ``out_dir`` is not generated again.
-    """
-    todo = []
-    for request in requests:
-        existing = Path(out_dir) / request.filename if out_dir is not None else None
-        if existing is not None and existing.exists():
-            yield EpisodeOutcome(request, True, None, str(existing), 0, resumed=True)
-        else:
-            todo.append((request, out_dir))
-    if executor == "ray":
-        yield from run_on_ray(run_episode, todo, address=address, num_cpus=workers)
-        return
-    if workers <= 1:
-        for item in todo:
-            yield _run_in_worker(item)
-        return
-    with multiprocessing.get_context("fork").Pool(workers, maxtasksperchild=20) as pool:
-        yield from pool.imap(_run_in_worker, todo)
