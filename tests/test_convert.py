@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from demo_factory.convert import SPLITS, unpack_depth, world_points
+from demo_factory.convert import DATASET_SPLITS, unpack_depth, world_points
 from demo_factory.cli import main
 from demo_factory.convert.usage import act_train_args
 from demo_factory.instructions import colour_words, corrupt_instruction
@@ -125,8 +125,8 @@ def _episodes(dataset):
 
 
 def test_layout_every_split_loads_offline(converted):
-    assert sorted(p.name for p in converted.iterdir()) == sorted([*SPLITS, "README.md", "contact_sheet.png"])
-    for split in SPLITS:
+    assert sorted(p.name for p in converted.iterdir()) == sorted([*DATASET_SPLITS, "README.md", "contact_sheet.png"])
+    for split in DATASET_SPLITS:
         dataset = _load(converted, split)
         assert dataset.num_episodes > 0 and dataset.fps == 10
         assert dataset.meta.info["cameras"] == CAMERAS
@@ -172,7 +172,7 @@ def test_world_points_from_dataset_equal_those_from_the_recording(converted, rec
 
 def test_splits_keep_seen_and_unseen_variations_apart(converted):
     test_ids = {v.id for v in get_task("push_buttons").split_variations("test")}
-    seen = {split: _load(converted, split).meta.info["demo_factory"]["episodes"] for split in SPLITS}
+    seen = {split: _load(converted, split).meta.info["demo_factory"]["episodes"] for split in DATASET_SPLITS}
     for split in ("train", "val"):
         assert seen[split] and all(e["variation_id"] not in test_ids for e in seen[split])
     for split in ("test_unseen_synthetic", "test_unseen_corrupted", "test_unseen_human"):

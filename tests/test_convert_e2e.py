@@ -7,7 +7,7 @@ os.environ.setdefault("HF_HUB_OFFLINE", "1")
 import pytest
 
 from demo_factory.cli import main
-from demo_factory.convert import SPLITS
+from demo_factory.convert import DATASET_SPLITS
 from demo_factory.instructions import colour_words, load_human_instructions, shipped_human_instructions
 from demo_factory.record import iter_episode_paths, read_episode
 
@@ -26,7 +26,7 @@ def test_generated_episodes_convert_to_loadable_splits(task, train, test, tmp_pa
     assert main(["convert", "--in", str(raw), "--out", str(out), "--repo-id", f"me/{task}", "--val-ratio", "0.34",
                  "--no-progress"]) == 0
     human_rows = {r.instruction for r in load_human_instructions(shipped_human_instructions(task))}
-    for split in SPLITS:
+    for split in DATASET_SPLITS:
         dataset = LeRobotDataset(f"me/{task}_{split}", root=out / split)
         episodes = dataset.meta.info["demo_factory"]["episodes"]
         assert dataset.num_frames == sum(len(recordings[e["recording"]].keyframes) for e in episodes)

@@ -10,7 +10,7 @@ import pytest
 
 from demo_factory.evaluate.env import KeyframeEnv, default_episodes, evaluation_seed
 from demo_factory.evaluate.policies import CurrentPosePolicy, ExpertPolicy
-from demo_factory.evaluate.runner import run_episode, summarise
+from demo_factory.evaluate.runner import evaluate_episode, summarise
 from demo_factory.generate import episode_seed
 from demo_factory.record import read_episode
 
@@ -39,7 +39,7 @@ def test_expert_scores_100_percent_on_10_episodes_of_each_split(task, tmp_path):
 def test_current_pose_policy_scores_zero_and_stops_at_the_step_limit():
     episodes = default_episodes("push_buttons", "test", 3)
     env = KeyframeEnv("push_buttons", episodes, image_size=(32, 32), step_slack=2)
-    records = [run_episode(env, CurrentPosePolicy(), e) for e in episodes]
+    records = [evaluate_episode(env, CurrentPosePolicy(), e) for e in episodes]
     env.close()
     assert summarise(records)["success_rate"] == 0.0
     for record in records:
@@ -50,8 +50,8 @@ def test_current_pose_policy_scores_zero_and_stops_at_the_step_limit():
 def test_evaluation_is_deterministic_and_records_rollouts(tmp_path):
     episode = default_episodes("push_buttons", "train", 1)[0]
     env = KeyframeEnv("push_buttons", [episode], image_size=(32, 32))
-    first = run_episode(env, ExpertPolicy(), episode, record_path=tmp_path / "a.mcap")
-    again = run_episode(env, ExpertPolicy(), episode, record_path=tmp_path / "b.mcap")
+    first = evaluate_episode(env, ExpertPolicy(), episode, record_path=tmp_path / "a.mcap")
+    again = evaluate_episode(env, ExpertPolicy(), episode, record_path=tmp_path / "b.mcap")
     env.close()
     assert first == again and first["success"]
     assert (tmp_path / "a.mcap").read_bytes() == (tmp_path / "b.mcap").read_bytes()

@@ -7,7 +7,7 @@ import pytest
 from demo_factory.collect.pictures import pictures_for, render_variation
 from demo_factory.evaluate.env import KeyframeEnv, default_episodes
 from demo_factory.evaluate.policies import ExpertPolicy
-from demo_factory.evaluate.runner import run_episode
+from demo_factory.evaluate.runner import evaluate_episode
 from demo_factory.generate import GenerationJob, run_job
 from demo_factory.record import read_episode
 from demo_factory.tasks import TASKS, get_task, motions
@@ -80,6 +80,6 @@ def test_a_registered_task_generates_shows_its_pictures_and_is_evaluated(registe
 
     episodes = default_episodes(task.name, "test", 2)
     env = KeyframeEnv(task.name, episodes, image_size=(32, 32))
-    records = [run_episode(env, ExpertPolicy(), episode) for episode in episodes]
+    records = [evaluate_episode(env, ExpertPolicy(), episode) for episode in episodes]
     env.close()
     assert [r["success"] for r in records] == [True, True]

@@ -26,12 +26,13 @@ def test_reference_run_chain_writes_its_results(tmp_path):
 
 
 def test_act_reference_trains_with_the_chunk_its_shortest_episode_holds(tmp_path):
+    from demo_factory.convert import DATASET_FORMAT_VERSION
     from demo_factory.tools.reference_run import act_train_command
 
     meta = tmp_path / "train" / "meta"
     meta.mkdir(parents=True)
     info = {"fps": 20, "cameras": ["wrist"], "features": {"observation.images.wrist": {"shape": [64, 64, 3]}},
-            "demo_factory": {"episodes": [{"frames": 60}, {"frames": 31}]}}
+            "demo_factory": {"format_version": DATASET_FORMAT_VERSION, "episodes": [{"frames": 60}, {"frames": 31}]}}
     (meta / "info.json").write_text(json.dumps(info))
     command = act_train_command(tmp_path / "train", tmp_path / "out", steps=300, batch_size=8)
     assert command[0].endswith("lerobot-train") and "--policy.type=act" in command

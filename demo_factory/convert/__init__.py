@@ -1,4 +1,12 @@
-"""MCAP episode recordings → LeRobot v3.0 datasets, one per split, with a dataset card."""
+"""Conversion: MCAP episode recordings → LeRobot v3.0 datasets, one per split, with a dataset card.
+
+Owns the dataset layout (`features`: feature names, shapes, depth packing, actions), the split plan
+(`splits`: train / val / unseen test splits and their instruction sources), the writer (`converter`), the
+card (`card`) and the training commands that fit each export (`usage`). Reads ``.mcap`` recordings, the
+generation summaries beside them and human-instruction files; writes one LeRobot dataset folder per split
+(provenance in ``meta/info.json["demo_factory"]``, read back by `read_dataset_provenance`), ``README.md``
+and ``contact_sheet.png`` into the output folder, all at once (a staging folder renamed at the end).
+"""
 
 from demo_factory.convert.converter import (
     DATASET_FORMAT_VERSION,
@@ -16,12 +24,12 @@ from demo_factory.convert.features import (
     world_points,
 )
 from demo_factory.convert.result import ConvertResult
-from demo_factory.convert.splits import SPLITS, split_repo_id
+from demo_factory.convert.splits import DATASET_SPLITS, split_repo_id
 
 __all__ = [
     "ACTION_SPACES",
     "DATASET_FORMAT_VERSION",
-    "SPLITS",
+    "DATASET_SPLITS",
     "ConvertError",
     "ConvertOptions",
     "ConvertResult",

@@ -49,7 +49,7 @@ IMAGE_WRITER_THREADS = 4  # PNG encoding in threads: the writer's bottleneck bes
 MULTI_TASK = "multi_task"  # the dataset's task label when the inputs' tasks form no named suite
 
 
-class ConvertError(UsageError):
+class ConvertError(UsageError, ValueError):
     """A problem the user can fix (bad option, bad input); the message is one line."""
 
 
@@ -402,6 +402,16 @@ def check_dataset_provenance(provenance: dict | None, root: Path | str) -> dict:
         raise ConvertError(f"{root}: dataset format version {found} {why} (this demo-factory reads version "
                            f"{DATASET_FORMAT_VERSION})")
     return provenance
+
+
+def read_dataset_provenance(split_root: Path | str) -> tuple[dict, dict]:
+    """A converted split's ``meta/info.json`` and its checked provenance (``check_dataset_provenance``):
+    ``(info, provenance)``; a ``ConvertError`` for a folder that is not a converted split."""
+    info_path = Path(split_root) / "meta" / "info.json"
+    if not info_path.is_file():
+        raise ConvertError(f"{split_root}: not a converted split (no meta/info.json)")
+    info = json.loads(info_path.read_text(encoding="utf-8"))
+    return info, check_dataset_provenance(info.get("demo_factory"), split_root)
 
 
 def plan_multi_task_splits(sources: list[SourceEpisode], tasks, val_ratio: float) -> dict[str, SplitPlan]:

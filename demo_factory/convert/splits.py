@@ -25,7 +25,7 @@ from pathlib import Path
 from demo_factory.instructions import HumanInstruction, assign_human_instructions, corrupt_instruction
 from demo_factory.instructions.human import HumanAssignment
 
-SPLITS: dict[str, str] = {  # split → instruction source
+DATASET_SPLITS: dict[str, str] = {  # split → instruction source
     "train": "synthetic",
     "val": "synthetic",
     "test_unseen_synthetic": "synthetic",
@@ -101,7 +101,7 @@ def plan_splits(
     train = [e for e in ordered if e.split == "train"]
     test = [e for e in ordered if e.split == "test"]
     val_paths = held_out_for_val(train, val_ratio)
-    plans = {name: SplitPlan(name, source) for name, source in SPLITS.items()}
+    plans = {name: SplitPlan(name, source) for name, source in DATASET_SPLITS.items()}
     for e in train:
         plans["val" if e.path in val_paths else "train"].episodes.append(PlannedEpisode(e, e.instruction))
     for e in test:

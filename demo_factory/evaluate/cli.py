@@ -166,7 +166,7 @@ def run(args) -> int:
 
     from demo_factory.evaluate.env import make_env
     from demo_factory.evaluate.policies import CurrentPosePolicy, ExpertPolicy, LeRobotPolicy
-    from demo_factory.evaluate.runner import run_episode, summarise, write_results
+    from demo_factory.evaluate.runner import evaluate_episode, summarise, write_results
 
     if args.policy_path is not None and not (Path(args.policy_path) / "config.json").is_file():
         raise UsageError(f"--policy.path {args.policy_path}: not a LeRobot checkpoint (no config.json)")
@@ -202,7 +202,7 @@ def run(args) -> int:
             for i, episode in enumerate(bar):
                 record_path = staging / "rollouts" / split / f"{split}_{i:04d}_var{episode.variation_id:04d}.mcap" \
                     if args.record else None
-                rows.append(run_episode(env, policy, episode, record_path))
+                rows.append(evaluate_episode(env, policy, episode, record_path))
                 bar.set_postfix(success=f"{100 * sum(r['success'] for r in rows) / len(rows):.1f}%")
             bar.close()
             results[split] = summarise(rows)

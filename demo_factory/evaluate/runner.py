@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
-from demo_factory.convert.converter import ConvertError, check_dataset_provenance
+from demo_factory.convert.converter import read_dataset_provenance
 from demo_factory.evaluate.env import KEYFRAME, EvalEpisode, KeyframeEnv, evaluation_seed
 from demo_factory.record import FORMAT_VERSION, EpisodeInfo, EpisodeWriter, Keyframe, library_versions
 
@@ -25,13 +25,7 @@ PAPER_RESULTS = {
 def split_episodes(dataset_split_root: Path, split: str, count: int, base_seed: int = 0) -> list[EvalEpisode]:
     """Evaluation episodes for one converted split: its (variation, instruction) pairs, cycled,
     each in a fresh scene from an evaluation seed (never a generation seed)."""
-    info_path = dataset_split_root / "meta" / "info.json"
-    if not info_path.is_file():
-        raise FileNotFoundError(f"{dataset_split_root}: not a converted split (no meta/info.json)")
-    try:
-        provenance = check_dataset_provenance(json.loads(info_path.read_text()).get("demo_factory"), dataset_split_root)
-    except ConvertError as error:
-        raise ValueError(str(error)) from None
+    _, provenance = read_dataset_provenance(dataset_split_root)
     task = provenance["task"]
     pairs = sorted({(e["variation_id"], e["instruction"]) for e in provenance["episodes"]})
     return [
@@ -44,16 +38,15 @@ def split_episodes(dataset_split_root: Path, split: str, count: int, base_seed: 
 def dataset_export(dataset_split_root: Path) -> dict:
     """How a converted split was exported: ``{"action_space": "keyframe" | "joints" | "ee", "fps": control
     rate, "longest_seconds": the longest episode's duration}`` (from ``meta/info.json``)."""
-    info = json.loads((dataset_split_root / "meta" / "info.json").read_text())
-    provenance = info.get("demo_factory") or {}
-    frames = [e["frames"] for e in provenance.get("episodes", []) if "frames" in e]
+    info, provenance = read_dataset_provenance(dataset_split_root)
+    frames = [e["frames"] for e in provenance["episodes"] if "frames" in e]
     if provenance.get("granularity") != "dense":
         return {"action_space": KEYFRAME, "fps": info["fps"], "longest_seconds": None}
     return {"action_space": provenance.get("action_space", "joints"), "fps": info["fps"],
             "longest_seconds": max(frames) / info["fps"] if frames else None}
 
 
-def run_episode(env: KeyframeEnv, policy, episode: EvalEpisode, record_path: Path | None = None) -> dict:
+def evaluate_episode(env: KeyframeEnv, policy, episode: EvalEpisode, record_path: Path | None = None) -> dict:
     """One rollout; returns its record (instruction, predicted keyframes or dense actions, outcome).
 
     With ``record_path`` the rollout is also recorded to MCAP with the generator's recorder: one

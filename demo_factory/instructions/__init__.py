@@ -1,4 +1,9 @@
-"""Instruction tools: colour-word corruption and human-written instruction files."""
+"""Instructions: colour-word corruption and human-written instruction files.
+
+Owns the corrupted-instruction rewriting (`corruption`) and the human-instruction file format (`human`:
+JSONL rows or the HiveFormer authors' ``annotations.json``, shipped in ``data/hiveformer/`` with its
+licence). Reads those files; writes nothing (``collect`` appends rows).
+"""
 
 from demo_factory.instructions.corruption import COLOUR_SYNONYMS, colour_words, corrupt_instruction
 from demo_factory.instructions.human import (

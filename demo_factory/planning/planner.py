@@ -22,7 +22,6 @@ from dataclasses import dataclass, field
 import numpy as np
 import pybullet as p
 
-from demo_factory.record.episode import PlannerAttempt
 from demo_factory.sim.world import ARM_JOINTS, GRASP_LINK, JOINT_LOWER, JOINT_UPPER, World
 
 MAX_ATTEMPTS = 10
@@ -39,6 +38,17 @@ def attempt_seed(episode_seed: int, transition: int, attempt: int) -> int:
     """The OMPL seed of one attempt: a pure function of the episode seed, transition and attempt."""
     state = np.random.SeedSequence([episode_seed, transition, attempt]).generate_state(1)[0]
     return int(state % (2**31 - 1)) + 1  # OMPL wants a positive seed
+
+
+@dataclass
+class PlannerAttempt:
+    """One seeded OMPL attempt for one keyframe transition (no wall-clock figures: see recorder)."""
+
+    keyframe_index: int
+    attempt: int  # 0..9
+    seed: int
+    status: str  # "exact", "approximate", "timeout", "invalid_start", "invalid_goal", ...
+    path_length: float  # joint-space length in radians, 0 when no path
 
 
 @dataclass

@@ -15,7 +15,7 @@ from pathlib import Path
 
 from demo_factory.convert.card import CONTACT_SHEET, hub_card
 from demo_factory.convert.converter import check_dataset_provenance
-from demo_factory.convert.splits import SPLITS
+from demo_factory.convert.splits import DATASET_SPLITS
 from demo_factory.errors import UsageError
 
 CARD = "README.md"
@@ -104,7 +104,7 @@ def find_splits(dataset: Path) -> dict[str, Path]:
             raise PublishError(f"{root} is a LeRobot dataset of format {info.get('codebase_version')!r}; "
                                "only v3.0 (LeRobot 0.4) is published")
         check_dataset_provenance(info.get("demo_factory"), root)  # a ConvertError is a UsageError (exit 2)
-    order = list(SPLITS)
+    order = list(DATASET_SPLITS)
     return {n: found[n] for n in sorted(found, key=lambda n: (order.index(n) if n in order else len(order), n))}
 
 

@@ -1,4 +1,9 @@
-"""Episode recording to MCAP, and reading it back as typed episodes."""
+"""Recording: episodes to MCAP, and back as typed episodes.
+
+Owns the recorded types (`episode`: frames, keyframes, planner attempts, episode info, the format version),
+the MCAP topics and schemas (`schema`), the writer, the reader and ``demo-factory inspect``. Reads and writes
+``.mcap`` files (a recording is written under a partial name and renamed when complete).
+"""
 
 from demo_factory.record.episode import (
     FORMAT_VERSION,

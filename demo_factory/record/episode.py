@@ -17,6 +17,12 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from demo_factory.planning.planner import PlannerAttempt  # recorded with each episode
+from demo_factory.sim.camera import CameraObservation  # recorded in each frame
+
+__all__ = ["FORMAT_VERSION", "OLDEST_READABLE_FORMAT", "CameraObservation", "Episode", "EpisodeInfo", "Frame",
+           "Keyframe", "PlannerAttempt", "RobotState"]
+
 # 2: push_buttons and tower variation ids are the HiveFormer paper's (train 0-99, test 100-199);
 # version 1 recordings numbered them differently and are refused by the reader.
 # 3: the planner takes the straight joint-space line where it is free, so a transition's path (and the
@@ -24,17 +30,6 @@ import numpy as np
 # and version 2 recordings are still read.
 FORMAT_VERSION = 3
 OLDEST_READABLE_FORMAT = 2
-
-
-@dataclass
-class CameraObservation:
-    """One camera's images at one frame."""
-
-    rgb: np.ndarray  # (H, W, 3) uint8
-    depth: np.ndarray  # (H, W) float32 metres (millimetre precision after recording)
-    segmentation: np.ndarray  # (H, W) int32 body ids, -1 background
-    intrinsics: np.ndarray  # (4,) float64: fx, fy, cx, cy
-    extrinsics: np.ndarray  # (4, 4) float64 world-from-camera, OpenCV axes
 
 
 @dataclass
@@ -74,17 +69,6 @@ class Keyframe:
     gripper_open: float  # command: 1.0 open, 0.0 closed
     reached_pose: np.ndarray  # (7,) the grasp-frame pose actually reached
     motion: str  # "start", "planned", "cartesian" or "gripper"
-
-
-@dataclass
-class PlannerAttempt:
-    """One seeded OMPL attempt for one keyframe transition (no wall-clock figures: see recorder)."""
-
-    keyframe_index: int
-    attempt: int  # 0..9
-    seed: int
-    status: str  # "exact", "approximate", "timeout", "invalid_start", "invalid_goal", ...
-    path_length: float  # joint-space length in radians, 0 when no path
 
 
 @dataclass

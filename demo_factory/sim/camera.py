@@ -8,7 +8,16 @@ import numpy as np
 import pybullet as p
 from scipy.spatial.transform import Rotation
 
-from demo_factory.record.episode import CameraObservation
+@dataclass
+class CameraObservation:
+    """One camera's images at one frame."""
+
+    rgb: np.ndarray  # (H, W, 3) uint8
+    depth: np.ndarray  # (H, W) float32 metres (millimetre precision after recording)
+    segmentation: np.ndarray  # (H, W) int32 body ids, -1 background
+    intrinsics: np.ndarray  # (4,) float64: fx, fy, cx, cy
+    extrinsics: np.ndarray  # (4, 4) float64 world-from-camera, OpenCV axes
+
 
 # OpenGL camera axes (x right, y up, looking down -z) → OpenCV axes (x right, y down, z forward).
 GL_TO_CV = np.diag([1.0, -1.0, -1.0, 1.0])

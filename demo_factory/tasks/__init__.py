@@ -1,4 +1,9 @@
-"""Tabletop tasks: one module each, registered by name in ``registry``."""
+"""Tasks: one module each, registered by name in ``registry`` (a new task is one module and one line).
+
+A task owns its variations and splits (`variations`, the HiveFormer paper's numbering where it has one),
+its instructions, its scene, its scripted expert (keyframes), its success check, and what the other stages
+show of it (the goal for the collection pictures, a wrong action for the tests). Reads nothing; writes nothing.
+"""
 
 from demo_factory.tasks.base import KeyframeTarget, Task
 from demo_factory.tasks.registry import MULTI_VARIATION_TASKS, TASKS, get_task

@@ -25,6 +25,7 @@ import sys
 import time
 from pathlib import Path
 
+from demo_factory.convert.converter import read_dataset_provenance
 from demo_factory.convert.usage import act_chunk, act_train_args
 
 BIN = Path(sys.executable).parent
@@ -68,8 +69,8 @@ def act_train_command(dataset_root: Path, output_dir: Path, steps: int, batch_si
     """`lerobot-train` of ACT as the converter suggests it for the dense export (its chunk from the shortest
     episode), at learning rate 1e-4 for the transformer and the backbone alike: ACT's preset 1e-5 is for
     100k-step runs from ImageNet weights, and offline the backbone starts from random weights."""
-    info = json.loads((dataset_root / "meta" / "info.json").read_text())
-    shortest = min(e["frames"] for e in info["demo_factory"]["episodes"])
+    info, provenance = read_dataset_provenance(dataset_root)
+    shortest = min(e["frames"] for e in provenance["episodes"])
     features = info["features"]
     cameras = info["cameras"]
     image_size = tuple(features[f"observation.images.{cameras[0]}"]["shape"][:2])
