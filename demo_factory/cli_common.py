@@ -23,22 +23,20 @@ EXIT_INTERRUPTED = 130
 
 # -- argument types ---------------------------------------------------------------------------
 def positive_int(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a whole number") from None
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"{value} is not allowed; must be at least 1")
-    return value
+    return _number(text, int, "a whole number", 1, "at least 1")
 
 
 def non_negative_float(text: str) -> float:
+    return _number(text, float, "a number", 0, "0 or more")
+
+
+def _number(text: str, kind, what: str, minimum, rule: str):
     try:
-        value = float(text)
+        value = kind(text)
     except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
-    if value < 0:
-        raise argparse.ArgumentTypeError(f"{value} is not allowed; must be 0 or more")
+        raise argparse.ArgumentTypeError(f"{text!r} is not {what}") from None
+    if value < minimum:
+        raise argparse.ArgumentTypeError(f"{value} is not allowed; must be {rule}")
     return value
 
 

@@ -214,6 +214,16 @@ class Task(ABC):
         raise NotImplementedError(f"{self.name} cannot show its finished goal")
 
 
+class PlacementTask(Task):
+    """A task whose goal never varies: one variation ("random"); episodes differ by the scene's placement,
+    drawn from the episode seed, and both splits hold that variation."""
+
+    palette = ("random",)
+    variation_kind = "placement"
+    max_sequence = 1
+    shared_split = True
+
+
 @cache
 def _enumeration(cls: type[Task]):
     """A task class's variations, their train/test split and a word-sequence index."""

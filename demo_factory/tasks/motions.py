@@ -37,25 +37,23 @@ def reach(position, orientation, gripper_open: float = OPEN) -> list[KeyframeTar
 
 def grasp(position, orientation, above: float = ABOVE) -> list[KeyframeTarget]:
     """Approach from above, close the fingers on the object, and lift it back to the approach height."""
-    over = pose(raised(position, above), orientation)
-    at = pose(position, orientation)
-    return [
-        KeyframeTarget(over, OPEN, "planned"),
-        KeyframeTarget(at, OPEN, "cartesian"),
-        KeyframeTarget(at, CLOSED, "gripper"),
-        KeyframeTarget(over, CLOSED, "cartesian"),
-    ]
+    return _down_switch_up(position, orientation, above, OPEN, CLOSED)
 
 
 def place(position, orientation, above: float = ABOVE) -> list[KeyframeTarget]:
     """Carry the held object above ``position``, lower it there, let go and back off upwards."""
+    return _down_switch_up(position, orientation, above, CLOSED, OPEN)
+
+
+def _down_switch_up(position, orientation, above: float, before: float, after: float) -> list[KeyframeTarget]:
+    """Above ``position`` (planned), straight down, the gripper from ``before`` to ``after``, straight up."""
     over = pose(raised(position, above), orientation)
     at = pose(position, orientation)
     return [
-        KeyframeTarget(over, CLOSED, "planned"),
-        KeyframeTarget(at, CLOSED, "cartesian"),
-        KeyframeTarget(at, OPEN, "gripper"),
-        KeyframeTarget(over, OPEN, "cartesian"),
+        KeyframeTarget(over, before, "planned"),
+        KeyframeTarget(at, before, "cartesian"),
+        KeyframeTarget(at, after, "gripper"),
+        KeyframeTarget(over, after, "cartesian"),
     ]
 
 

@@ -7,7 +7,7 @@ import pybullet as p
 from scipy.spatial.transform import Rotation
 
 from demo_factory.tasks import motions
-from demo_factory.tasks.base import KeyframeTarget, Task
+from demo_factory.tasks.base import KeyframeTarget, PlacementTask
 from demo_factory.tasks.objects import Part, add_body, resting_on, upright
 from demo_factory.tasks.variations import Variation
 
@@ -32,14 +32,10 @@ def yaw_rotation(yaw: float) -> tuple[float, ...]:
     return tuple(Rotation.from_euler("z", yaw).as_quat())
 
 
-class PutKnifeOnChoppingBoard(Task):
+class PutKnifeOnChoppingBoard(PlacementTask):
     name = "put_knife_on_chopping_board"
     description = "Grasp the knife by its handle and lay it flat on the chopping board."
     category = "precision"
-    palette = ("random",)
-    variation_kind = "placement"
-    max_sequence = 1
-    shared_split = True
 
     def synthetic_instructions(self, variation: Variation) -> list[str]:
         return ["put the knife on the chopping board", "place the knife onto the board",

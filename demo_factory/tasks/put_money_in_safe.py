@@ -5,23 +5,19 @@ from __future__ import annotations
 import numpy as np
 
 from demo_factory.tasks import motions
-from demo_factory.tasks.base import KeyframeTarget, Task
+from demo_factory.tasks.base import KeyframeTarget
 from demo_factory.tasks.objects import at_rest, free_of_robot
-from demo_factory.tasks.safe import FRONT_REGION, GRIP_FROM_REAR, HAND_CLEARANCE, NOTE_HALF, SHELVES, Safe, add_note, note_rear_grip
+from demo_factory.tasks.safe import GRIP_FROM_REAR, HAND_CLEARANCE, NOTE_HALF, SafeTask, add_note, note_rear_grip
 from demo_factory.tasks.variations import Variation
 
 NOTE_REGION = ((0.38, 0.42), (-0.2, 0.2))
 INSERT_TRAVEL = 0.15  # the straight slide into the compartment (starts with the note 2.5 cm out)
 
 
-class PutMoneyInSafe(Task):
+class PutMoneyInSafe(SafeTask):
     name = "put_money_in_safe"
     description = "Take the banknote bundle off the table and put it on the instructed shelf of the open safe."
     category = "motion planner"
-    palette = SHELVES
-    variation_kind = "shelf"
-    max_sequence = 1
-    shared_split = True
 
     def synthetic_instructions(self, variation: Variation) -> list[str]:
         s = variation.colours[0]
@@ -29,12 +25,9 @@ class PutMoneyInSafe(Task):
                 f"stash the money in the {s} compartment of the safe"]
 
     def build_scene(self, world, variation: Variation, rng: np.random.Generator) -> None:
-        (fx0, fx1), (fy0, fy1) = FRONT_REGION
-        self.safe = Safe(world, rng.uniform(fx0, fx1), rng.uniform(fy0, fy1))
+        self.place_safe(world, variation, rng)
         (nx0, nx1), (ny0, ny1) = NOTE_REGION
-        self.world = world
         self.note = add_note(world, (rng.uniform(nx0, nx1), rng.uniform(ny0, ny1)), NOTE_HALF[2])
-        self.shelf = variation.colours[0]
 
     def expert(self, world) -> list[KeyframeTarget]:
         grip = motions.top_down(0.0)

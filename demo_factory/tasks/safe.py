@@ -10,7 +10,9 @@ from __future__ import annotations
 import numpy as np
 import pybullet as p
 
+from demo_factory.tasks.base import Task
 from demo_factory.tasks.objects import Part, add_body
+from demo_factory.tasks.variations import Variation
 
 SHELVES = ("bottom", "middle", "top")
 WALL = 0.01
@@ -62,6 +64,22 @@ class Safe:
 
     def inside(self, position) -> bool:
         return position[0] > self.front + 0.01 and abs(position[1] - self.y) < INNER_HALF_WIDTH
+
+
+class SafeTask(Task):
+    """A task at an open safe placed in front of the robot; the variation is one of its shelves."""
+
+    palette = SHELVES
+    variation_kind = "shelf"
+    max_sequence = 1
+    shared_split = True
+
+    def place_safe(self, world, variation: Variation, rng: np.random.Generator) -> None:
+        """The safe at a random spot of FRONT_REGION; the instructed shelf in ``self.shelf``."""
+        (x0, x1), (y0, y1) = FRONT_REGION
+        self.safe = Safe(world, rng.uniform(x0, x1), rng.uniform(y0, y1))
+        self.shelf = variation.colours[0]
+        self.world = world
 
 
 def add_note(world, centre, z: float) -> int:

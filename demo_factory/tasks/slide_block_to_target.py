@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from demo_factory.tasks import motions
-from demo_factory.tasks.base import KeyframeTarget, Task
+from demo_factory.tasks.base import KeyframeTarget, PlacementTask
 from demo_factory.tasks.objects import free_of_robot, at_rest
 from demo_factory.tasks.variations import Variation
 
@@ -18,14 +18,10 @@ TOLERANCE = 0.03  # block centre to target centre
 START_REGION = ((0.4, 0.52), (-0.12, 0.12))
 
 
-class SlideBlockToTarget(Task):
+class SlideBlockToTarget(PlacementTask):
     name = "slide_block_to_target"
     description = "Push the red block across the table onto the green target square."
     category = "tools"
-    palette = ("random",)
-    variation_kind = "placement"
-    max_sequence = 1
-    shared_split = True
 
     def synthetic_instructions(self, variation: Variation) -> list[str]:
         return ["slide the block to the target", "push the red block onto the green square",

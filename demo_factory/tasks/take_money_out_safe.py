@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 
 from demo_factory.tasks import motions
-from demo_factory.tasks.base import KeyframeTarget, Task
+from demo_factory.tasks.base import KeyframeTarget
 from demo_factory.tasks.objects import resting_on
-from demo_factory.tasks.safe import FRONT_REGION, HAND_CLEARANCE, NOTE_HALF, SHELF_TOPS, SHELVES, GRIP_FROM_REAR, Safe, add_note, note_rear_grip
+from demo_factory.tasks.safe import GRIP_FROM_REAR, HAND_CLEARANCE, NOTE_HALF, SHELF_TOPS, SHELVES, SafeTask, add_note, note_rear_grip
 from demo_factory.tasks.variations import Variation
 
 PROTRUDES = HAND_CLEARANCE + GRIP_FROM_REAR  # the note's rear end sticks out of the safe this far
@@ -17,14 +17,10 @@ SAFE_CLEARANCE = 0.03
 OUT_OF_SAFE = 0.08  # the note's centre must end this far in front of the safe
 
 
-class TakeMoneyOutSafe(Task):
+class TakeMoneyOutSafe(SafeTask):
     name = "take_money_out_safe"
     description = "Take the banknote bundle from the instructed shelf of the open safe and put it on the table."
     category = "visual occlusion"
-    palette = SHELVES
-    variation_kind = "shelf"
-    max_sequence = 1
-    shared_split = True
 
     def synthetic_instructions(self, variation: Variation) -> list[str]:
         s = variation.colours[0]
@@ -32,10 +28,7 @@ class TakeMoneyOutSafe(Task):
                 f"get the money from the {s} compartment of the safe and put it on the table"]
 
     def build_scene(self, world, variation: Variation, rng: np.random.Generator) -> None:
-        (fx0, fx1), (fy0, fy1) = FRONT_REGION
-        self.safe = Safe(world, rng.uniform(fx0, fx1), rng.uniform(fy0, fy1))
-        self.shelf = variation.colours[0]
-        self.world = world
+        self.place_safe(world, variation, rng)
         # One note, on the instructed shelf: the shelves above it hide most of it from the cameras.
         top = SHELF_TOPS[SHELVES.index(self.shelf)]
         centre = (self.safe.front - PROTRUDES + NOTE_HALF[0], self.safe.y + rng.uniform(-0.04, 0.04))

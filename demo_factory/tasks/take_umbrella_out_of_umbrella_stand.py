@@ -6,7 +6,7 @@ import numpy as np
 import pybullet as p
 
 from demo_factory.tasks import motions
-from demo_factory.tasks.base import KeyframeTarget, Task
+from demo_factory.tasks.base import KeyframeTarget, PlacementTask
 from demo_factory.tasks.objects import Part, add_body, held
 
 STAND_INNER, STAND_WALL, STAND_HEIGHT, STAND_PLATE = 0.07, 0.008, 0.15, 0.01
@@ -41,14 +41,10 @@ def umbrella_parts() -> list[Part]:
     ]
 
 
-class TakeUmbrellaOutOfUmbrellaStand(Task):
+class TakeUmbrellaOutOfUmbrellaStand(PlacementTask):
     name = "take_umbrella_out_of_umbrella_stand"
     description = "Grasp the umbrella's handle and lift it straight up out of its stand."
     category = "precision"
-    palette = ("random",)
-    variation_kind = "placement"
-    max_sequence = 1
-    shared_split = True
 
     def synthetic_instructions(self, variation) -> list[str]:
         return ["take the umbrella out of the umbrella stand", "lift the umbrella out of the stand",
