@@ -7,6 +7,7 @@ identical whichever executor, worker count or machine produced them.
 from __future__ import annotations
 
 import multiprocessing
+from collections.abc import Callable
 from pathlib import Path
 
 from demo_factory.generate.episode import EpisodeOutcome, EpisodeRequest, run_episode
@@ -14,20 +15,20 @@ from demo_factory.generate.ray_executor import run_on_ray
 
 
 def _run_in_worker(args) -> EpisodeOutcome:
-    request, out_dir = args
-    return run_episode(request, out_dir)
+    episode, request, out_dir = args
+    return episode(request, out_dir)
 
 
 EXECUTORS = ("process", "ray")
 
 
 def run_requests(requests: list[EpisodeRequest], out_dir: str | Path | None, workers: int = 1,
-                 executor: str = "process", address: str | None = None):
+                 executor: str = "process", address: str | None = None, episode: Callable = run_episode):
     """Generate every request, yielding outcomes in order.
 
     ``executor="process"`` uses ``workers`` local processes; ``"ray"`` schedules the same
-    per-episode work on a Ray cluster (``address``, or a local one). A request whose recording
-    already exists in ``out_dir`` is not generated again.
+    per-episode work on a Ray cluster (``address``, or a local one); both run ``episode(request, out_dir)``
+    (default: `run_episode`). A request whose recording already exists in ``out_dir`` is not generated again.
     """
     todo = []
     for request in requests:
@@ -37,11 +38,11 @@ def run_requests(requests: list[EpisodeRequest], out_dir: str | Path | None, wor
         else:
             todo.append((request, out_dir))
     if executor == "ray":
-        yield from run_on_ray(run_episode, todo, address=address, num_cpus=workers)
+        yield from run_on_ray(episode, todo, address=address, num_cpus=workers)
         return
     if workers <= 1:
-        for item in todo:
-            yield _run_in_worker(item)
+        for request, folder in todo:
+            yield episode(request, folder)
         return
     with multiprocessing.get_context("fork").Pool(workers, maxtasksperchild=20) as pool:
-        yield from pool.imap(_run_in_worker, todo)
+        yield from pool.imap(_run_in_worker, [(episode, request, folder) for request, folder in todo])

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from demo_factory.convert.card import CONTACT_SHEET, hub_card
-from demo_factory.convert.converter import check_dataset_provenance
+from demo_factory.convert.converter import ConvertError, read_dataset_provenance
 from demo_factory.convert.splits import DATASET_SPLITS
 from demo_factory.errors import UsageError
 
@@ -99,11 +99,13 @@ def find_splits(dataset: Path) -> dict[str, Path]:
         raise PublishError(f"--dataset {dataset} holds no split folders (folders with meta/info.json); "
                            "expected the output folder of demo-factory convert")
     for name, root in found.items():
-        info = json.loads((root / "meta" / "info.json").read_text(encoding="utf-8"))
+        try:
+            info, _ = read_dataset_provenance(root)
+        except ConvertError as error:
+            raise PublishError(str(error)) from None
         if info.get("codebase_version") != "v3.0":
             raise PublishError(f"{root} is a LeRobot dataset of format {info.get('codebase_version')!r}; "
                                "only v3.0 (LeRobot 0.4) is published")
-        check_dataset_provenance(info.get("demo_factory"), root)  # a ConvertError is a UsageError (exit 2)
     order = list(DATASET_SPLITS)
     return {n: found[n] for n in sorted(found, key=lambda n: (order.index(n) if n in order else len(order), n))}
 
