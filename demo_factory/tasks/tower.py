@@ -77,6 +77,12 @@ class Tower(Task):
             keyframes += motions.place([*self.target, place_z], motions.top_down(0.0), ABOVE)
         return keyframes
 
+    def wrong_keyframes(self, world) -> list[KeyframeTarget]:
+        """Stack a cube the instruction does not name at the bottom instead of the first one."""
+        distractor = next(c for c in self.cubes if c not in self.instructed.colours)
+        wrong = Variation(self.instructed.id, (distractor, *self.instructed.colours[1:]))
+        return self.expert_with(world, instructed=wrong)
+
     def graspable_bodies(self) -> list[int]:
         return list(self.cubes.values())
 
