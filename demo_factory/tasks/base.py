@@ -166,8 +166,9 @@ class Task(ABC):
 
     def wrong_keyframes(self, world) -> list[KeyframeTarget]:
         """A deliberately wrong action for the scene (the wrong object, the wrong place, stopping short): the
-        tests check that `success` stays False after it."""
-        raise NotImplementedError(f"{self.name} has no wrong action written")
+        tests check that `success` stays False after it. By default no action at all (stopping before the
+        first keyframe); tasks write a closer miss."""
+        return []
 
     def expert_with(self, world, **attributes) -> list[KeyframeTarget]:
         """The expert's keyframes as if the task's attributes (e.g. its target) were others; for wrong actions."""
@@ -201,8 +202,9 @@ class Task(ABC):
     goal_sketch: str = "sequence"
 
     def goal_points(self, world, variation: Variation) -> list[np.ndarray]:
-        """World points of the objects the instruction names, in its order (numbered in the pictures)."""
-        raise NotImplementedError(f"{self.name} does not mark its goal for the instruction-collection pictures")
+        """World points of the objects the instruction names, in its order (numbered in the pictures); by
+        default none (the pictures show the scene unmarked)."""
+        return []
 
     def goal_place(self) -> np.ndarray | None:
         """The world point where the goal is built (ringed in the pictures), or None."""
@@ -210,8 +212,10 @@ class Task(ABC):
 
     def show_goal(self, world, variation: Variation) -> np.ndarray:
         """Move the objects into the finished goal (for a close-up picture only); returns the world point on
-        top of it. Tasks with ``goal_sketch == "stack"`` provide it."""
-        raise NotImplementedError(f"{self.name} cannot show its finished goal")
+        top of it. Tasks with ``goal_sketch == "stack"`` move them; by default the scene stays as it is and
+        the point is the goal place (the origin without one)."""
+        place = self.goal_place()
+        return np.zeros(3) if place is None else place
 
 
 class PlacementTask(Task):
