@@ -121,9 +121,9 @@ def test_api_appends_rows_the_converter_accepts(serve, tmp_path):
 
     rows = load_human_instructions(out)
     task = get_task("push_buttons")
-    assert [(r.task, r.variation_id, r.colours, r.author, r.language) for r in rows] == \
-        [("push_buttons", variation["id"], task.variation(variation["id"]).colours, "w1", "en")]
-    assert json.loads(out.read_text())["colours"] == list(task.variation(variation["id"]).colours)
+    assert [(r.task, r.variation_id, r.words, r.author, r.language) for r in rows] == \
+        [("push_buttons", variation["id"], task.variation(variation["id"]).words, "w1", "en")]
+    assert json.loads(out.read_text())["colours"] == list(task.variation(variation["id"]).words)
 
 
 def test_api_rejects_bad_input_and_never_echoes_markup(serve, tmp_path):
@@ -258,7 +258,7 @@ def test_a_writer_edits_only_their_own_last_entry(serve, tmp_path):
 @pytest.mark.parametrize("task_name", ["push_buttons", "tower"])
 def test_pictures_are_deterministic_cached_and_show_the_order(tmp_path, task_name):
     task = get_task(task_name)
-    variation = max(task.split_variations("test"), key=lambda v: len(v.colours))
+    variation = max(task.split_variations("test"), key=lambda v: len(v.words))
     first, second = PictureCache(task, tmp_path / "a"), PictureCache(task, tmp_path / "b")
     for picture in pictures_for(task):
         png = first.png(variation.id, picture.name)
@@ -271,7 +271,7 @@ def test_pictures_are_deterministic_cached_and_show_the_order(tmp_path, task_nam
     # The drawn goal: the colours in order (buttons left to right, cubes bottom to top).
     goal = cv2.cvtColor(cv2.imread(str(first.path(variation.id, "goal"))), cv2.COLOR_BGR2RGB).astype(int)
     centres = []
-    for colour in variation.colours:
+    for colour in variation.words:
         rgb = np.round(np.array(COLOURS[colour]) * 255)
         ys, xs = np.nonzero(np.abs(goal - rgb).sum(axis=-1) < 6)
         assert len(xs) > 100, colour

@@ -56,7 +56,7 @@ def write_recording(folder: Path, task: str, split: str, variation, seed: int, k
                     dense_fps: float = 0.0, cameras=CAMERAS) -> Path:
     """A synthetic episode recording: random images, ``keyframes`` keyframes, optional dense frames."""
     rng = np.random.default_rng(seed)
-    info = EpisodeInfo(FORMAT_VERSION, task, split, variation.id, list(variation.colours), seed,
+    info = EpisodeInfo(FORMAT_VERSION, task, split, variation.id, list(variation.words), seed,
                        get_task(task).instruction(variation, seed), list(cameras), SIZE, dense_fps)
     path = folder / f"{task}_{split}_var{variation.id:04d}_seed{seed:010d}.mcap"
     writer = EpisodeWriter(path, info)
@@ -96,7 +96,7 @@ def human_file(tmp_path_factory):
     """Three rows for the first test variation (it has 2 episodes), one for the second (1 episode)."""
     a, b = _variations("push_buttons", "test", 2)
     rows = [{"task": "push_buttons", "variation_id": a.id, "instruction": f"hit them, take {i}", "author": "t"}
-            for i in range(3)] + [{"task": "push_buttons", "colours": list(b.colours), "instruction": "tap the grey-ish ones"}]
+            for i in range(3)] + [{"task": "push_buttons", "colours": list(b.words), "instruction": "tap the grey-ish ones"}]
     path = tmp_path_factory.mktemp("human") / "human.jsonl"
     path.write_text("".join(json.dumps(r) + "\n" for r in rows))
     return path

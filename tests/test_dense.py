@@ -47,7 +47,7 @@ def write_dense_recording(folder: Path, split: str, variation, seed: int, ticks:
     first and last tick, the gripper closing half way, random joints and poses (both quaternion signs)."""
     rng = np.random.default_rng(seed)
     task = get_task("push_buttons")
-    info = EpisodeInfo(FORMAT_VERSION, "push_buttons", split, variation.id, list(variation.colours), seed,
+    info = EpisodeInfo(FORMAT_VERSION, "push_buttons", split, variation.id, list(variation.words), seed,
                        task.instruction(variation, seed), CAMERAS, SIZE, float(RECORDED_FPS))
     path = folder / f"push_buttons_{split}_var{variation.id:04d}_seed{seed:010d}.mcap"
     writer = EpisodeWriter(path, info)

@@ -25,7 +25,7 @@ def test_corruption_replaces_every_colour_word_of_every_synthetic_instruction():
             for text in task.synthetic_instructions(variation):
                 corrupted = corrupt_instruction(text)
                 assert colour_words(corrupted) == [], corrupted
-                for colour in variation.colours:
+                for colour in variation.words:
                     assert COLOUR_SYNONYMS[colour] in corrupted
 
 
@@ -62,14 +62,14 @@ def _first_test(task_name):
     return get_task(task_name).split_variations("test")[0]
 
 
-GOOD = {"task": "push_buttons", "colours": list(_first_test("push_buttons").colours), "instruction": "tap it"}
+GOOD = {"task": "push_buttons", "colours": list(_first_test("push_buttons").words), "instruction": "tap it"}
 
 
 @pytest.mark.parametrize("bad, message", [
     ("{not json", "not valid JSON"),
     ({**GOOD, "task": "juggle"}, "unknown task 'juggle'; accepted: push_buttons, tower"),
     ({**GOOD, "colours": ["mauve"]}, "unknown colour 'mauve'"),
-    ({**GOOD, "colours": list(get_task("push_buttons").split_variations("train")[0].colours)}, "is a train variation of push_buttons"),
+    ({**GOOD, "colours": list(get_task("push_buttons").split_variations("train")[0].words)}, "is a train variation of push_buttons"),
     ({**GOOD, "colours": None, "variation_id": get_task("push_buttons").split_variations("train")[0].id}, "would leak train data into a test split"),
     ({"task": "push_buttons", "instruction": "tap it"}, "no variation"),
     ({**GOOD, "instruction": "  "}, "instruction is missing or empty"),
@@ -87,9 +87,9 @@ def test_bad_human_instruction_rows_name_the_line(tmp_path, bad, message):
 
 
 def test_rows_accept_ids_colour_strings_and_grey_spelling(tmp_path):
-    variation = next(v for v in get_task("tower").split_variations("test") if "gray" in v.colours)
+    variation = next(v for v in get_task("tower").split_variations("test") if "gray" in v.words)
     path = _write(tmp_path, [
-        {"task": "tower", "colours": ", ".join(variation.colours).replace("gray", "Grey"), "instruction": "a"},
+        {"task": "tower", "colours": ", ".join(variation.words).replace("gray", "Grey"), "instruction": "a"},
         {"task": "tower", "variation_id": variation.id, "instruction": "b", "author": "me", "language": "fr"},
     ])
     rows = load_human_instructions(path)

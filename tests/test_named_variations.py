@@ -13,7 +13,7 @@ def unseen_beyond_test_set(task_name: str, count: int, length: int):
     """Variations that are neither train nor default-test variations (named by users)."""
     task = get_task(task_name)
     taken = set(task.split_variations("train")) | set(task.split_variations("test"))
-    return [v for v in task.variations if len(v.colours) == length and v not in taken][:count]
+    return [v for v in task.variations if len(v.words) == length and v not in taken][:count]
 
 
 @pytest.mark.slow
@@ -21,8 +21,8 @@ def test_instruction_file_yields_episodes_for_exactly_its_variations_and_every_r
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
     named = unseen_beyond_test_set("push_buttons", 4, 2) + get_task("push_buttons").split_variations("test")[:1]
-    rows = [{"task": "push_buttons", "colours": [c.title() for c in v.colours],
-             "instruction": f"please tap {' then '.join(v.colours)}"} for v in named]
+    rows = [{"task": "push_buttons", "colours": [c.title() for c in v.words],
+             "instruction": f"please tap {' then '.join(v.words)}"} for v in named]
     rows.append({"task": "push_buttons", "variation_id": named[0].id, "instruction": "hit those two, in order"})
     instructions = tmp_path / "mine.jsonl"
     instructions.write_text("".join(json.dumps(r) + "\n" for r in rows))

@@ -31,7 +31,7 @@ class TouchSpheresInOrder(Task):
     split_seed = 7
 
     def synthetic_instructions(self, variation: Variation) -> list[str]:
-        names = " then the ".join(variation.colours)
+        names = " then the ".join(variation.words)
         return [f"touch the {names} sphere", f"reach the {names} ball", f"go to the {names} target"]
 
     def build_scene(self, world, variation: Variation, rng: np.random.Generator) -> None:
@@ -43,7 +43,7 @@ class TouchSpheresInOrder(Task):
         self.touched: list[str] = []
 
     def expert(self, world) -> list[KeyframeTarget]:
-        return [k for colour in self.instructed.colours for k in motions.reach(self.spheres[colour], motions.top_down(0.0))]
+        return [k for colour in self.instructed.words for k in motions.reach(self.spheres[colour], motions.top_down(0.0))]
 
     def on_step(self, world) -> None:
         hand = world.gripper_pose()[:3]
@@ -52,10 +52,10 @@ class TouchSpheresInOrder(Task):
                 self.touched.append(colour)
 
     def success(self, world) -> bool:
-        return tuple(self.touched) == self.instructed.colours
+        return tuple(self.touched) == self.instructed.words
 
     def goal_points(self, world, variation: Variation) -> list[np.ndarray]:
-        return [self.spheres[colour] for colour in variation.colours]
+        return [self.spheres[colour] for colour in variation.words]
 
 
 @pytest.fixture
@@ -67,7 +67,7 @@ def registered(monkeypatch):
 @pytest.mark.slow
 def test_a_registered_task_generates_shows_its_pictures_and_is_evaluated(registered, tmp_path):
     task = registered
-    assert {len(v.colours) for v in task.split_variations("train") + task.split_variations("test")} <= {1, 2}
+    assert {len(v.words) for v in task.split_variations("train") + task.split_variations("test")} <= {1, 2}
 
     summary = run_job(GenerationJob(task=task.name, split="train", episodes=2, out=tmp_path / "raw", image_size=(32, 32)))
     assert summary["kept"] == 2, summary["failed"]

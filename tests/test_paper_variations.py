@@ -51,10 +51,10 @@ def _raw_rows():
 def test_variation_ids_are_the_forks(task_name):
     task = get_task(task_name)
     for vid, colours in CHECK_VALUES[task_name].items():
-        assert task.variation(vid).colours == colours, vid
+        assert task.variation(vid).words == colours, vid
     assert [v.id for v in task.split_variations("train")] == list(range(100))
     assert [v.id for v in task.split_variations("test")] == list(range(100, 200))
-    assert len({v.colours for v in task.variations}) == len(task.variations)  # each sequence once
+    assert len({v.words for v in task.variations}) == len(task.variations)  # each sequence once
     assert "HiveFormer paper ids" in task.variation_scheme
 
 
@@ -83,9 +83,9 @@ def test_all_162_rows_map_to_test_variations_with_their_exact_sentences():
         assert row.variation_id == fields["variation"] and row.record_id == record["id"]
         task = get_task(row.task)
         assert task.variation(row.variation_id) in task.split_variations("test")
-        assert row.colours == task.variation(row.variation_id).colours
+        assert row.words == task.variation(row.variation_id).words
         if "colors" in fields:
-            assert list(row.colours) == fields["colors"]
+            assert list(row.words) == fields["colors"]
     by_task = {t: [r for r in rows if r.task == t] for t in ("push_buttons", "tower")}
     assert len(by_task["push_buttons"]) == 62 and len({r.variation_id for r in by_task["push_buttons"]}) == 51
     assert len(by_task["tower"]) == 100 and len({r.variation_id for r in by_task["tower"]}) == 100
@@ -210,7 +210,7 @@ def test_variations_past_the_papers_ids_may_train_but_test_ones_may_not():
 
     task = get_task("push_buttons")
     extra = task.parse_variation("205")
-    assert extra.colours == ("maroon",) and extra not in task.split_variations("test")
+    assert extra.words == ("maroon",) and extra not in task.split_variations("test")
     task.check_split_membership(extra, "train")  # an extra training variation: accepted
     task.check_split_membership(extra, "test")  # or a further unseen one
     with pytest.raises(ValueError, match="leak"):

@@ -9,8 +9,8 @@ from demo_factory.tasks.palette import COLOURS, canonical_colour
 @pytest.mark.parametrize("name", MULTI_VARIATION_TASKS)
 def test_train_and_test_variations_are_disjoint_and_sized(name):
     task = get_task(name)
-    train = {v.colours for v in task.split_variations("train")}
-    test = {v.colours for v in task.split_variations("test")}
+    train = {v.words for v in task.split_variations("train")}
+    test = {v.words for v in task.split_variations("test")}
     assert len(train) == 100 and len(test) == 100
     assert not train & test
     # The paper's ids: push_buttons' 200 happen to hold no single colour, tower's do.
@@ -25,7 +25,7 @@ def test_split_is_deterministic_across_instances(name):
 def test_push_buttons_palette_excludes_red_and_lime():
     task = get_task("push_buttons")
     assert "red" not in task.palette and "lime" not in task.palette and len(task.palette) == 18
-    assert all(len(set(v.colours)) == len(v.colours) for v in task.variations)
+    assert all(len(set(v.words)) == len(v.words) for v in task.variations)
 
 
 @pytest.mark.parametrize("name", MULTI_VARIATION_TASKS)
@@ -35,7 +35,7 @@ def test_at_least_three_instruction_templates_naming_every_colour_in_order(name)
         texts = task.synthetic_instructions(variation)
         assert len(set(texts)) >= 3
         for text in texts:
-            positions = [text.index(colour) for colour in variation.colours]
+            positions = [text.index(colour) for colour in variation.words]
             assert positions == sorted(positions), text
 
 

@@ -38,7 +38,7 @@ def test_variations_are_deterministic_and_splits_documented(name):
         assert train == test == task.variations
         task.check_split_membership(task.variations[0], "test")  # every variation belongs to both
     else:
-        assert train and test and not {v.colours for v in train} & {v.colours for v in test}
+        assert train and test and not {v.words for v in train} & {v.words for v in test}
     assert task.parse_variation(task.variations[-1].name) == task.variations[-1]
 
 
@@ -49,7 +49,7 @@ def test_at_least_three_instruction_templates_naming_the_goal(name):
         texts = task.synthetic_instructions(variation)
         assert len(set(texts)) >= 3
         if task.variation_kind != "placement":
-            assert all(variation.colours[0] in text for text in texts)
+            assert all(variation.words[0] in text for text in texts)
 
 
 def _scene(name, seed=3, variation_index=0):

@@ -159,9 +159,9 @@ def render_variation(task_name: str, variation_id: int) -> dict[str, np.ndarray]
             pictures[name] = image
         if task.goal_sketch == "stack":
             pictures["goal_render"] = _render_goal(world, task, variation)
-            pictures["goal"] = draw_tower(variation.colours)
+            pictures["goal"] = draw_tower(variation.words)
         else:
-            pictures["goal"] = draw_button_order(variation.colours)
+            pictures["goal"] = draw_button_order(variation.words)
     finally:
         world.close()
     return {name: cv2.cvtColor(image, cv2.COLOR_BGR2RGB) for name, image in pictures.items()}

@@ -54,7 +54,7 @@ class Entry:
 
     line: int
     variation_id: int
-    colours: tuple[str, ...]
+    words: tuple[str, ...]
     instruction: str
     author: str | None
     language: str
@@ -157,7 +157,7 @@ class InstructionFile:
         rows = load_human_instructions(self.path) if text.strip() else []
         self._lines = text.splitlines()
         self._keys = {duplicate_key(r.task, r.instruction): r.line - 1 for r in rows}
-        self._entries = [Entry(r.line - 1, r.variation_id, r.colours, r.instruction, r.author, r.language)
+        self._entries = [Entry(r.line - 1, r.variation_id, r.words, r.instruction, r.author, r.language)
                          for r in rows if r.task == self.task.name]
         self._ends_with_newline = not text or text.endswith("\n")
         self._signature = signature
@@ -238,7 +238,7 @@ class InstructionFile:
         row = {
             "task": self.task.name,
             "variation_id": variation_id,
-            "colours": list(self.task.variation(variation_id).colours),
+            "colours": list(self.task.variation(variation_id).words),
             "instruction": instruction,
             "author": writer,
             "language": self.language,
@@ -271,7 +271,7 @@ class InstructionFile:
             if created:
                 _fsync_folder(self.path.parent)
             # Under the flock nobody else wrote: update the view instead of re-validating the file.
-            entry = Entry(len(self._lines), variation_id, self.task.variation(variation_id).colours, instruction,
+            entry = Entry(len(self._lines), variation_id, self.task.variation(variation_id).words, instruction,
                           writer, self.language)
             self._lines.append(line)
             self._entries.append(entry)

@@ -193,9 +193,9 @@ def render_card(result: ConvertResult, template: Path = TEMPLATE) -> str:
         v = task.split_variations("train")[len(task.split_variations("train")) // 2]
         example = "; ".join(f'"{t}"' for t in task.synthetic_instructions(v))
         task_text = (f"{task.description} Palette ({len(task.palette)} colours): {', '.join(task.palette)}. "
-                     f"Synthetic instruction templates, e.g. for {', '.join(v.colours)}: {example}.")
+                     f"Synthetic instruction templates, e.g. for {', '.join(v.words)}: {example}.")
         default_test = {v.id for v in task.split_variations("test")}
-        named = sorted({(s.variation_id, ",".join(s.colours)) for s in result.sources
+        named = sorted({(s.variation_id, ",".join(s.words)) for s in result.sources
                         if s.split == "test" and s.variation_id not in default_test})
         if named:
             task_text += (" Named test variations (generated with `--variation` / `--variations-from`, beyond the "

@@ -170,7 +170,7 @@ def _source(episode: Episode, path: Path, granularity: str, stride: int = 1) -> 
     attempts = Counter(a.keyframe_index for a in info.planner_attempts)
     return SourceEpisode(
         path=path, task=info.task, split=info.split, variation_id=info.variation_id,
-        colours=tuple(info.variation), episode_seed=info.episode_seed, instruction=info.instruction,
+        words=tuple(info.variation), episode_seed=info.episode_seed, instruction=info.instruction,
         frames=len(episode_frames(episode, granularity, stride)),
         keyframes=len(episode.keyframes),
         planner_attempts=tuple(attempts[k] for k in sorted(attempts)),
@@ -362,7 +362,7 @@ def write_split(plan: SplitPlan, root: Path, repo_id: str, survey_: _Survey, gra
                 "episode_index": index,
                 "recording": planned.source.path.name,
                 "variation_id": planned.source.variation_id,
-                "colours": list(planned.source.colours),
+                "colours": list(planned.source.words),
                 "episode_seed": planned.source.episode_seed,
                 "instruction": planned.instruction,
                 "frames": len(items),

@@ -42,7 +42,7 @@ class SourceEpisode:
     task: str
     split: str  # the recorded variation split: "train" or "test"
     variation_id: int
-    colours: tuple[str, ...]
+    words: tuple[str, ...]
     episode_seed: int
     instruction: str
     frames: int  # dataset frames it yields at the chosen granularity

@@ -87,7 +87,7 @@ def _rollout_writer(env: KeyframeEnv, episode: EvalEpisode, path: Path) -> Episo
     variation = env.sim_task.variation(episode.variation_id)
     info = EpisodeInfo(
         format_version=FORMAT_VERSION, task=episode.task, split=episode.split, variation_id=episode.variation_id,
-        variation=list(variation.colours), episode_seed=episode.seed, instruction=episode.instruction,
+        variation=list(variation.words), episode_seed=episode.seed, instruction=episode.instruction,
         cameras=list(env.frame.cameras), image_size=env.image_size,
         dense_fps=float(getattr(env, "fps", 0.0)) if env.action_space_name != KEYFRAME else 0.0,
         extra={"evaluation": True, **env.sim_task.scene_facts()},

@@ -71,7 +71,7 @@ def run_episode(request: EpisodeRequest, out_dir: str | Path | None) -> EpisodeO
     try:
         info = EpisodeInfo(
             format_version=FORMAT_VERSION, task=task.name, split=request.split, variation_id=variation.id,
-            variation=list(variation.colours), episode_seed=request.episode_seed, instruction=instruction,
+            variation=list(variation.words), episode_seed=request.episode_seed, instruction=instruction,
             cameras=[c.name for c in DEFAULT_CAMERAS], image_size=tuple(request.image_size),
             dense_fps=float(request.dense_fps), extra=task.scene_facts(),
         )

@@ -62,7 +62,7 @@ class HumanInstruction:
 
     task: str
     variation_id: int
-    colours: tuple[str, ...]
+    words: tuple[str, ...]
     instruction: str
     author: str | None
     language: str
@@ -135,7 +135,7 @@ def _load_annotations(path: Path, text: str) -> list[HumanInstruction]:
             raise HumanInstructionError(f"{where}: variation {vid!r} does not exist; {fork_task} has ids 0 to "
                                         f"{task.paper_numbering.total - 1}")
         variation = task.variation(vid)
-        if "colors" in fields and [str(c).lower() for c in fields["colors"] or []] != list(variation.colours):
+        if "colors" in fields and [str(c).lower() for c in fields["colors"] or []] != list(variation.words):
             raise HumanInstructionError(f"{where}: colors {fields['colors']} disagree with {fork_task} variation {vid}, "
                                         f"which is {variation.name}")
         try:
@@ -145,7 +145,7 @@ def _load_annotations(path: Path, text: str) -> list[HumanInstruction]:
         instruction = fields.get("instruction")
         if not isinstance(instruction, str):  # "" is kept: the authors' file has one blank row (tower3 136)
             raise HumanInstructionError(f"{where}: instruction is missing; expected a string")
-        rows.append(HumanInstruction(task.name, vid, variation.colours, instruction, None, "en", number,
+        rows.append(HumanInstruction(task.name, vid, variation.words, instruction, None, "en", number,
                                      record.get("id")))
     if not rows:
         raise HumanInstructionError(f"{path}: no instructions in the file")
@@ -186,8 +186,8 @@ def _parse_row(text: str, error) -> HumanInstruction:
         if not isinstance(vid, int) or isinstance(vid, bool) or not 0 <= vid < len(task.variations):
             raise error(f"variation_id {vid!r} does not exist; {task_name} has ids 0 to {len(task.variations) - 1}")
         if variation is not None and variation.id != vid:
-            raise error(f"variation_id {vid} is {','.join(task.variation(vid).colours)}, "
-                        f"but colours say {','.join(variation.colours)}")
+            raise error(f"variation_id {vid} is {','.join(task.variation(vid).words)}, "
+                        f"but colours say {','.join(variation.words)}")
         variation = task.variation(vid)
     if variation is not None:
         try:
@@ -203,7 +203,7 @@ def _parse_row(text: str, error) -> HumanInstruction:
     for name, value in (("author", author), ("language", language), ("timestamp", row.get("timestamp"))):
         if value is not None and (not isinstance(value, str) or not value.strip()):
             raise error(f"{name} must be a non-empty string, got {value!r}")
-    return HumanInstruction(task_name, variation.id, variation.colours, instruction.strip(), author, language, 0)
+    return HumanInstruction(task_name, variation.id, variation.words, instruction.strip(), author, language, 0)
 
 
 def variations_in_file(path: str | os.PathLike, task: Task) -> list[Variation]:

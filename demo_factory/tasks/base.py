@@ -100,14 +100,14 @@ class Task(ABC):
     def variation(self, variation_id: int) -> Variation:
         return self.variations[variation_id]
 
-    def variation_of(self, colours) -> Variation:
+    def variation_of(self, words) -> Variation:
         """The variation of a colour sequence (a list or "maroon,navy"; any case, grey = gray), or of
         another kind's words for tasks whose variations are not colours (e.g. "top" for a shelf).
 
         Raises ``ValueError`` naming an unknown or repeated word, or a sequence that is too long.
         """
         kind = self.variation_kind
-        words = colours.split(",") if isinstance(colours, str) else list(colours)
+        words = words.split(",") if isinstance(words, str) else list(words)
         sequence = []
         for word in words:
             value = canonical_colour(word) if kind == "colour" else word.strip().lower()
@@ -234,13 +234,13 @@ def _enumeration(cls: type[Task]):
     if cls.paper_numbering is not None:
         variations = paper_variations(cls.palette, cls.max_sequence, cls.paper_numbering)
         splits = {"train": variations[:cls.n_train], "test": variations[cls.n_train:cls.n_train + cls.n_test]}
-        return variations, splits, {v.colours: v for v in variations}
+        return variations, splits, {v.words: v for v in variations}
     variations = enumerate_sequences(cls.palette, cls.max_sequence)
     if cls.shared_split:
         splits = {"train": list(variations), "test": list(variations)}
     else:
         splits = split_variations(variations, cls.n_train, cls.n_test, cls.split_seed)
-    return variations, splits, {v.colours: v for v in variations}
+    return variations, splits, {v.words: v for v in variations}
 
 
 def spread_positions(rng: np.random.Generator, n: int, workspace, min_spacing: float) -> list[np.ndarray]:

@@ -37,13 +37,13 @@ class PickAndLift(Task):
     split_seed = 20220303
 
     def synthetic_instructions(self, variation: Variation) -> list[str]:
-        c = variation.colours[0]
+        c = variation.words[0]
         return [f"pick up the {c} block and lift it up to the target", f"grasp the {c} cube and raise it to the sphere",
                 f"lift the {c} block to the target height"]
 
     def build_scene(self, world, variation: Variation, rng: np.random.Generator) -> None:
-        distractors = [x for x in self.palette if x not in variation.colours]
-        colours = [variation.colours[0], *rng.choice(distractors, N_BLOCKS - 1, replace=False)]
+        distractors = [x for x in self.palette if x not in variation.words]
+        colours = [variation.words[0], *rng.choice(distractors, N_BLOCKS - 1, replace=False)]
         points = spread_positions(rng, N_BLOCKS + 1, WORKSPACE, MIN_SPACING)
         self.world = world
         self.blocks = {}
@@ -53,7 +53,7 @@ class PickAndLift(Task):
                                                      orientation=Rotation.from_euler("z", yaw).as_quat(), friction=1.0)
         self.target = np.array([*points[0], rng.uniform(*TARGET_HEIGHT)])
         marker(world, self.target, TARGET_RADIUS, TARGET_RGBA)
-        self.instructed = variation.colours[0]
+        self.instructed = variation.words[0]
 
     def expert(self, world) -> list[KeyframeTarget]:
         position, orientation = world.body_pose(self.blocks[self.instructed])

@@ -45,18 +45,18 @@ class PickUpCup(Task):
     split_seed = 20220304
 
     def synthetic_instructions(self, variation: Variation) -> list[str]:
-        c = variation.colours[0]
+        c = variation.words[0]
         return [f"pick up the {c} cup", f"grasp the {c} cup and lift it", f"lift the {c} mug off the table"]
 
     def build_scene(self, world, variation: Variation, rng: np.random.Generator) -> None:
-        distractor = str(rng.choice([x for x in self.palette if x not in variation.colours]))
+        distractor = str(rng.choice([x for x in self.palette if x not in variation.words]))
         self.world = world
         self.cups = {}
-        for colour, xy in zip([variation.colours[0], distractor], spread_positions(rng, 2, WORKSPACE, MIN_SPACING)):
+        for colour, xy in zip([variation.words[0], distractor], spread_positions(rng, 2, WORKSPACE, MIN_SPACING)):
             yaw = rng.uniform(-np.pi / 4, np.pi / 4)
             self.cups[colour] = add_body(world, cup_parts(colour), (*xy, WALL / 2), Rotation.from_euler("z", yaw).as_quat(),
                                          mass=0.08)
-        self.instructed = variation.colours[0]
+        self.instructed = variation.words[0]
 
     def expert(self, world) -> list[KeyframeTarget]:
         position, orientation = world.body_pose(self.cups[self.instructed])

@@ -18,5 +18,5 @@ class PushButton(PushButtons):
     paper_numbering = None  # not one of the paper's numbered tasks: its 18 colours are dealt at random
 
     def synthetic_instructions(self, variation: Variation) -> list[str]:
-        c = variation.colours[0]
+        c = variation.words[0]
         return [f"push the {c} button", f"press the {c} button", f"press down on the {c} button"]

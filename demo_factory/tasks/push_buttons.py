@@ -42,7 +42,7 @@ class PushButtons(Task):
     gripper_starts_open = False
 
     def synthetic_instructions(self, variation: Variation) -> list[str]:
-        c = variation.colours
+        c = variation.words
         first, rest = c[0], c[1:]
         texts = [
             "push the " + _sequence_text(c, "{} button", ", then the "),
@@ -57,8 +57,8 @@ class PushButtons(Task):
 
     # -- scene ----------------------------------------------------------------------------
     def build_scene(self, world, variation: Variation, rng: np.random.Generator) -> None:
-        distractors = [x for x in self.palette if x not in variation.colours]
-        colours = list(variation.colours) + list(rng.choice(distractors, N_BUTTONS - len(variation.colours), replace=False))
+        distractors = [x for x in self.palette if x not in variation.words]
+        colours = list(variation.words) + list(rng.choice(distractors, N_BUTTONS - len(variation.words), replace=False))
         colours = [colours[i] for i in rng.permutation(N_BUTTONS)]
         positions = spread_positions(rng, N_BUTTONS, WORKSPACE, MIN_SPACING)
         self.world = world
@@ -75,7 +75,7 @@ class PushButtons(Task):
     def expert(self, world) -> list[KeyframeTarget]:
         tip = world.fingertip_offset()
         keyframes = []
-        for colour in self.instructed.colours:
+        for colour in self.instructed.words:
             keyframes += motions.press(self.cap_top(colour), TOP_DOWN, approach=APPROACH_HEIGHT + tip,
                                        depth=PRESS_DEPTH - tip)
         return keyframes
@@ -83,7 +83,7 @@ class PushButtons(Task):
     def wrong_keyframes(self, world) -> list[KeyframeTarget]:
         """Press a button the instruction does not start with."""
         tip = world.fingertip_offset()
-        other = next(c for c in self.buttons if c != self.instructed.colours[0])
+        other = next(c for c in self.buttons if c != self.instructed.words[0])
         return motions.press(self.cap_top(other), TOP_DOWN, approach=APPROACH_HEIGHT + tip, depth=PRESS_DEPTH - tip)
 
     def on_step(self, world) -> None:
@@ -94,10 +94,10 @@ class PushButtons(Task):
             self._down[colour] = down
 
     def success(self, world) -> bool:
-        return tuple(self.pressed_order) == self.instructed.colours
+        return tuple(self.pressed_order) == self.instructed.words
 
     def goal_points(self, world, variation: Variation) -> list[np.ndarray]:
-        return [self.cap_top(colour) for colour in variation.colours]
+        return [self.cap_top(colour) for colour in variation.words]
 
     def scene_facts(self) -> dict:
         return {

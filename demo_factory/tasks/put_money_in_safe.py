@@ -20,7 +20,7 @@ class PutMoneyInSafe(SafeTask):
     category = "motion planner"
 
     def synthetic_instructions(self, variation: Variation) -> list[str]:
-        s = variation.colours[0]
+        s = variation.words[0]
         return [f"put the money away in the safe on the {s} shelf", f"place the banknotes on the {s} shelf of the safe",
                 f"stash the money in the {s} compartment of the safe"]
 

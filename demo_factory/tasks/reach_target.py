@@ -27,17 +27,17 @@ class ReachTarget(Task):
     split_seed = 20220301
 
     def synthetic_instructions(self, variation: Variation) -> list[str]:
-        c = variation.colours[0]
+        c = variation.words[0]
         return [f"reach the {c} target", f"touch the {c} ball with the gripper", f"move the gripper to the {c} sphere"]
 
     def build_scene(self, world, variation: Variation, rng: np.random.Generator) -> None:
-        distractors = [x for x in self.palette if x not in variation.colours]
-        colours = [variation.colours[0], *rng.choice(distractors, N_SPHERES - 1, replace=False)]
+        distractors = [x for x in self.palette if x not in variation.words]
+        colours = [variation.words[0], *rng.choice(distractors, N_SPHERES - 1, replace=False)]
         self.spheres = {}
         for colour, xy in zip(colours, spread_positions(rng, N_SPHERES, WORKSPACE, MIN_SPACING)):
             self.spheres[str(colour)] = np.array([*xy, rng.uniform(*HEIGHT)])
             marker(world, self.spheres[str(colour)], RADIUS, rgba(str(colour)))
-        self.target = variation.colours[0]
+        self.target = variation.words[0]
 
     def expert(self, world) -> list[KeyframeTarget]:
         return motions.reach(self.spheres[self.target], motions.top_down(0.0))

@@ -78,7 +78,7 @@ class SafeTask(Task):
         """The safe at a random spot of FRONT_REGION; the instructed shelf in ``self.shelf``."""
         (x0, x1), (y0, y1) = FRONT_REGION
         self.safe = Safe(world, rng.uniform(x0, x1), rng.uniform(y0, y1))
-        self.shelf = variation.colours[0]
+        self.shelf = variation.words[0]
         self.world = world
 
 

@@ -53,7 +53,7 @@ class StackWine(Task):
     shared_split = True
 
     def synthetic_instructions(self, variation: Variation) -> list[str]:
-        s = variation.colours[0]
+        s = variation.words[0]
         return [f"stack the wine bottle in the {s} slot of the rack", f"put the bottle into the {s} slot",
                 f"place the wine in the {s} compartment of the wine rack"]
 
@@ -65,7 +65,7 @@ class StackWine(Task):
         self.world = world
         self.bottle = add_body(world, bottle_parts(), (rng.uniform(bx0, bx1), rng.uniform(by0, by1), BODY_LENGTH / 2),
                                mass=0.15, friction=1.0)
-        self.slot = variation.colours[0]
+        self.slot = variation.words[0]
 
     def slot_centre(self, slot: str) -> np.ndarray:
         offset = (1 - SLOTS.index(slot)) * (SLOT_INNER + RACK_WALL)

@@ -23,7 +23,7 @@ class TakeMoneyOutSafe(SafeTask):
     category = "visual occlusion"
 
     def synthetic_instructions(self, variation: Variation) -> list[str]:
-        s = variation.colours[0]
+        s = variation.words[0]
         return [f"take the money out of the {s} shelf of the safe", f"remove the banknotes from the {s} shelf",
                 f"get the money from the {s} compartment of the safe and put it on the table"]
 

@@ -32,7 +32,7 @@ class Tower(Task):
     paper_numbering = PaperNumbering("tower3", per_length=200, total=200)
 
     def synthetic_instructions(self, variation: Variation) -> list[str]:
-        c = variation.colours
+        c = variation.words
         if len(c) == 1:
             return [
                 f"put the {c[0]} cube on the target",
@@ -47,8 +47,8 @@ class Tower(Task):
 
     # -- scene ----------------------------------------------------------------------------
     def build_scene(self, world, variation: Variation, rng: np.random.Generator) -> None:
-        distractors = [x for x in self.palette if x not in variation.colours]
-        colours = list(variation.colours) + list(rng.choice(distractors, N_CUBES - len(variation.colours), replace=False))
+        distractors = [x for x in self.palette if x not in variation.words]
+        colours = list(variation.words) + list(rng.choice(distractors, N_CUBES - len(variation.words), replace=False))
         points = spread_positions(rng, N_CUBES + 1, WORKSPACE, MIN_SPACING)
         self.world = world
         self.instructed = variation
@@ -70,7 +70,7 @@ class Tower(Task):
 
     def expert(self, world) -> list[KeyframeTarget]:
         keyframes = []
-        for level, colour in enumerate(self.instructed.colours):
+        for level, colour in enumerate(self.instructed.words):
             position, _ = world.body_pose(self.cubes[colour])
             place_z = (level + 0.5) * CUBE + PLACE_CLEARANCE
             keyframes += motions.grasp(position, motions.top_down(self.grasp_yaw(colour)), ABOVE)
@@ -79,15 +79,15 @@ class Tower(Task):
 
     def wrong_keyframes(self, world) -> list[KeyframeTarget]:
         """Stack a cube the instruction does not name at the bottom instead of the first one."""
-        distractor = next(c for c in self.cubes if c not in self.instructed.colours)
-        wrong = Variation(self.instructed.id, (distractor, *self.instructed.colours[1:]))
+        distractor = next(c for c in self.cubes if c not in self.instructed.words)
+        wrong = Variation(self.instructed.id, (distractor, *self.instructed.words[1:]))
         return self.expert_with(world, instructed=wrong)
 
     def graspable_bodies(self) -> list[int]:
         return list(self.cubes.values())
 
     def success(self, world) -> bool:
-        for level, colour in enumerate(self.instructed.colours):
+        for level, colour in enumerate(self.instructed.words):
             position, _ = world.body_pose(self.cubes[colour])
             if np.linalg.norm(position[:2] - self.target) > POSITION_TOLERANCE:
                 return False
@@ -98,16 +98,16 @@ class Tower(Task):
     goal_sketch = "stack"
 
     def goal_points(self, world, variation: Variation) -> list[np.ndarray]:
-        return [world.body_pose(self.cubes[colour])[0] + [0.0, 0.0, CUBE / 2] for colour in variation.colours]
+        return [world.body_pose(self.cubes[colour])[0] + [0.0, 0.0, CUBE / 2] for colour in variation.words]
 
     def goal_place(self) -> np.ndarray:
         return np.array([*self.target, 0.0])
 
     def show_goal(self, world, variation: Variation) -> np.ndarray:
-        for level, colour in enumerate(variation.colours):
+        for level, colour in enumerate(variation.words):
             position = (float(self.target[0]), float(self.target[1]), (level + 0.5) * CUBE)
             world.set_body_pose(self.cubes[colour], position, (0, 0, 0, 1))
-        return np.array([*self.target, len(variation.colours) * CUBE])
+        return np.array([*self.target, len(variation.words) * CUBE])
 
     def scene_facts(self) -> dict:
         return {

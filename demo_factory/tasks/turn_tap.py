@@ -56,7 +56,7 @@ class TurnTap(Task):
     shared_split = True
 
     def synthetic_instructions(self, variation: Variation) -> list[str]:
-        t = variation.colours[0]
+        t = variation.words[0]
         return [f"turn the {t} tap", f"rotate the {t} tap's handle a quarter turn", f"open the {t} tap"]
 
     def build_scene(self, world, variation: Variation, rng: np.random.Generator) -> None:
@@ -65,7 +65,7 @@ class TurnTap(Task):
         world.add_box(BASE_HALF, (*centre, BASE_HALF[2]), METAL, mass=0.0)
         self.taps = {name: _make_tap(world, centre + [0.0, side * TAP_SPACING / 2])
                      for name, side in (("left", 1), ("right", -1))}
-        self.target = variation.colours[0]
+        self.target = variation.words[0]
         self.world = world
 
     def handle_angle(self, world, tap: str) -> float:

@@ -24,16 +24,16 @@ SPLITS = ("train", "test")
 class Variation:
     """An ordered sequence of palette words; ``id`` is its index in the task's full enumeration.
 
-    The words are colours for colour tasks (``colours`` keeps that name because recordings, the
-    converter and the instruction tools read it), or another kind of goal: a slot, a shelf.
+    The words are colours for colour tasks, or another kind of goal (a slot, a shelf, a tap): the
+    task's ``variation_kind`` says which. Files keep their own keys (``colours`` in instruction files).
     """
 
     id: int
-    colours: tuple[str, ...]
+    words: tuple[str, ...]
 
     @property
     def name(self) -> str:
-        return ",".join(self.colours)
+        return ",".join(self.words)
 
 
 def enumerate_sequences(palette: tuple[str, ...], max_length: int) -> list[Variation]:
@@ -88,7 +88,7 @@ def paper_variations(palette: tuple[str, ...], max_length: int, numbering: Paper
     ``enumerate_sequences`` order, so that any sequence can still be named as an unseen variation."""
     paper = hiveformer_sequences(palette, max_length, numbering)
     taken = set(paper)
-    rest = [v.colours for v in enumerate_sequences(palette, max_length) if v.colours not in taken]
+    rest = [v.words for v in enumerate_sequences(palette, max_length) if v.words not in taken]
     return [Variation(i, seq) for i, seq in enumerate(paper + rest)]
 
 
@@ -104,7 +104,7 @@ def split_variations(
     rng = np.random.default_rng(split_seed)
     by_length: dict[int, list[Variation]] = {}
     for v in variations:
-        by_length.setdefault(len(v.colours), []).append(v)
+        by_length.setdefault(len(v.words), []).append(v)
     pools = []
     for length in sorted(by_length):
         pool = list(by_length[length])

@@ -49,7 +49,7 @@ def _timing(outcomes) -> dict:
 def bench_recorded_episode_speed(task_name: str, episodes: int) -> dict:
     """Seconds per recorded episode (3 cameras, 128x128, one process) on variations of length 3."""
     task = get_task(task_name)
-    longest = [v for v in task.split_variations("train") if len(v.colours) == 3]
+    longest = [v for v in task.split_variations("train") if len(v.words) == 3]
     requests = [EpisodeRequest(task_name, "train", longest[i % len(longest)].id, episode_seed(99, task_name, "train", i))
                 for i in range(episodes)]
     with tempfile.TemporaryDirectory() as folder:
