@@ -104,6 +104,35 @@ def test_a_free_straight_line_is_the_path_without_sampling():
     world.close()
 
 
+def test_the_straight_line_check_gives_the_world_back_as_it_was():
+    """The straight line is checked in this process: robot and a carried box, positions and velocities,
+    are exactly as before afterwards (the check moved both along the line)."""
+    import pybullet as p
+
+    world = World()
+    kinematics = Kinematics()
+    start = kinematics.inverse([0.45, 0.2, 0.2, *TOP_DOWN])
+    goal = kinematics.inverse([0.5, -0.1, 0.15, *TOP_DOWN])
+    kinematics.close()
+    world.reset_arm(start)
+    box = world.add_box((0.02,) * 3, (0.3, -0.3, 0.02), (0.2, 0.8, 0.2, 1))
+    world.command_arm(goal)
+    world.step(5)  # moving: velocities are not zero
+
+    def state():
+        joints = p.getJointStates(world.robot, range(p.getNumJoints(world.robot, physicsClientId=world.client)),
+                                  physicsClientId=world.client)
+        return ([(s[0], s[1]) for s in joints], p.getBasePositionAndOrientation(box, physicsClientId=world.client),
+                p.getBaseVelocity(box, physicsClientId=world.client))
+
+    before = state()
+    carried = (box, (0.0, 0.0, 0.05), (0.0, 0.0, 0.0, 1.0))
+    result = JointPlanner().plan(world, world.joint_positions(), goal, episode_seed=5, transition=0, grasped=carried)
+    assert [a.status for a in result.attempts] == ["exact"] and len(result.path) == 2
+    assert state() == before
+    world.close()
+
+
 def test_self_collision_prefilter_gives_the_exhaustive_answer():
     import pybullet as p
 
