@@ -17,7 +17,8 @@ import numpy as np
 from demo_factory.planning import JointPlanner
 from demo_factory.record import FORMAT_VERSION, EpisodeInfo, EpisodeWriter, Keyframe, library_versions
 from demo_factory.rollout import SETTLE_AFTER_STEPS, KeyframeExecutor, observe, start_scene
-from demo_factory.sim import DEFAULT_CAMERAS, Kinematics, World
+from demo_factory.sim import DEFAULT_CAMERAS, World
+from demo_factory.sim.kinematics import shared_kinematics
 from demo_factory.tasks import SPLITS, get_task
 
 
@@ -66,7 +67,7 @@ def run_episode(request: EpisodeRequest, out_dir: str | Path | None) -> EpisodeO
     variation = task.variation(request.variation_id)
     instruction = task.instruction(variation, request.episode_seed)
     world = start_scene(task, variation, request.episode_seed, DEFAULT_CAMERAS, request.image_size)
-    kinematics = Kinematics()
+    kinematics = shared_kinematics()
     writer = None
     try:
         info = EpisodeInfo(
@@ -135,4 +136,3 @@ def run_episode(request: EpisodeRequest, out_dir: str | Path | None) -> EpisodeO
         raise
     finally:
         world.close()
-        kinematics.close()

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import os
+
 import numpy as np
 import pybullet as p
 from scipy.spatial.transform import Rotation, Slerp
@@ -10,6 +12,12 @@ from demo_factory.sim.world import ARM_JOINTS, FINGER_JOINTS, GRASP_LINK, HOME, 
 
 POSITION_TOLERANCE = 1e-4  # metres (0.1 mm)
 ORIENTATION_TOLERANCE = 1e-3  # radians
+# Where the refinement stops (metres). At 1e-9 it never stopped: 1000 iterations, 1.9 ms a call;
+# at 1e-7 it takes 0.56 ms and lands within 0.12 µm (measured on 40 poses of the workspace).
+REFINE_RESIDUAL = 1e-7
+# The null-space pass only has to land near the seed's branch for the refinement: 0.1 mm is enough
+# (1.3 ms instead of 1.9 ms a call; solutions move by < 1e-4 rad).
+NULL_SPACE_RESIDUAL = 1e-4
 
 
 def pose_error(a, b) -> tuple[float, float]:
@@ -22,23 +30,23 @@ def pose_error(a, b) -> tuple[float, float]:
 class Kinematics:
     """Forward and inverse kinematics on a copy of the arm that never touches the physics world.
 
-    IK: a null-space pass (joint limits + rest pose, 100 iterations) then a plain 1000-iteration
-    refinement from that result, which reaches ~0.01 mm. The result must lie within the joint
-    limits and match the target within 0.1 mm and 1 mrad, else the pose counts as unreachable.
+    IK: a null-space pass (joint limits + rest pose, to 0.1 mm) then a plain refinement from
+    that result until the position residual is below 0.1 µm (at most 1000 iterations; the
+    orientation comes out within ~0.2 µrad). The result must lie within the joint limits and match
+    the target within 0.1 mm and 1 mrad, else the pose counts as unreachable.
     """
 
     def __init__(self):
         self.client = p.connect(p.DIRECT)
-        self.robot = p.loadURDF(panda_urdf(False), useFixedBase=True, physicsClientId=self.client)
+        # The low-poly copy: same kinematic tree (same IK, bit for bit), loads in ~20 ms instead of ~150.
+        self.robot = p.loadURDF(panda_urdf(), useFixedBase=True, physicsClientId=self.client)
 
     def close(self) -> None:
         p.disconnect(self.client)
 
     def _set(self, q) -> None:
-        for j, v in zip(ARM_JOINTS, q):
-            p.resetJointState(self.robot, j, v, physicsClientId=self.client)
-        for j in FINGER_JOINTS:
-            p.resetJointState(self.robot, j, 0.02, physicsClientId=self.client)
+        values = [[v] for v in np.asarray(q, dtype=float).tolist()] + [[0.02], [0.02]]
+        p.resetJointStatesMultiDof(self.robot, ARM_JOINTS + FINGER_JOINTS, values, physicsClientId=self.client)
 
     def forward(self, q) -> np.ndarray:
         """Grasp-frame pose for arm joints ``q``."""
@@ -53,11 +61,11 @@ class Kinematics:
             self.robot, GRASP_LINK, pos, orn,
             lowerLimits=list(JOINT_LOWER) + [0, 0], upperLimits=list(JOINT_UPPER) + [0.04, 0.04],
             jointRanges=list(JOINT_UPPER - JOINT_LOWER) + [0.04, 0.04], restPoses=list(seed) + [0.02, 0.02],
-            maxNumIterations=100, residualThreshold=1e-6, physicsClientId=self.client,
+            maxNumIterations=100, residualThreshold=NULL_SPACE_RESIDUAL, physicsClientId=self.client,
         )
         self._set(q[:7])
         q = p.calculateInverseKinematics(
-            self.robot, GRASP_LINK, pos, orn, maxNumIterations=1000, residualThreshold=1e-9, physicsClientId=self.client,
+            self.robot, GRASP_LINK, pos, orn, maxNumIterations=1000, residualThreshold=REFINE_RESIDUAL, physicsClientId=self.client,
         )
         return np.array(q[:7])
 
@@ -75,6 +83,18 @@ class Kinematics:
             if dp <= POSITION_TOLERANCE and dr <= ORIENTATION_TOLERANCE:
                 return np.clip(q, JOINT_LOWER, JOINT_UPPER)
         return None
+
+
+_SHARED: dict[int, Kinematics] = {}
+
+
+def shared_kinematics() -> Kinematics:
+    """This process's ``Kinematics``, made once: its answers depend on the call's arguments only (every
+    call sets all joints first), so one serves every episode and connecting per episode is saved."""
+    pid = os.getpid()  # a forked child makes its own
+    if pid not in _SHARED:
+        _SHARED[pid] = Kinematics()
+    return _SHARED[pid]
 
 
 def slerp_poses(start, goal, n: int) -> list[np.ndarray]:
