@@ -32,7 +32,8 @@ __all__ = ["FORMAT_VERSION", "OLDEST_READABLE_FORMAT", "CameraObservation", "Epi
 # restoreState instead of in a forked child (~4x faster planning). restoreState gives back every
 # position, velocity and contact point, but not the collision pairs' internal caches, so in some
 # scenes (e.g. take_money_out_safe) the physics after it differs at the 1e-7 level: the paths are
-# those of version 3, a file of the same seed can differ in its last digits.
+# those of version 3, a file of the same seed can differ in its last digits. Inverse kinematics also
+# stops at a 0.1 um residual instead of always iterating 1000 times: joint targets move by < 1e-4 rad.
 FORMAT_VERSION = 4
 OLDEST_READABLE_FORMAT = 2
 
