@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from demo_factory.cli_common import positive_int
 from demo_factory.convert.converter import ConvertOptions, convert
 from demo_factory.convert.features import ACTION_SPACES, DEFAULT_ACTION_SPACE, DEFAULT_CONTROL_FPS, GRANULARITIES
 from demo_factory.convert.result import ConvertResult
@@ -49,6 +50,9 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     parser.add_argument("--skip-invalid", action="store_true",
                         help="leave out truncated, corrupt or inconsistent recordings (listed in the summary and card)")
     parser.add_argument("--overwrite", action="store_true", help="replace an existing output folder")
+    parser.add_argument("--workers", type=positive_int, metavar="N",
+                        help="processes writing each split's episode batches, merged in order with LeRobot's "
+                             "aggregate_datasets into the dataset one process writes (default: one per CPU core)")
     parser.add_argument("--no-progress", dest="progress", action="store_false", help="no progress bars")
     parser.set_defaults(run=run)
     return parser
@@ -60,6 +64,7 @@ def run(args: argparse.Namespace) -> int:
         inputs=list(args.inputs), out=args.out, repo_id=args.repo_id or f"local/{args.out.resolve().name}",
         granularity=args.granularity, action_space=args.action_space, fps=args.fps, val_ratio=args.val_ratio, human_instructions=args.human_instructions,
         task=args.task, skip_invalid=args.skip_invalid, overwrite=args.overwrite, progress=args.progress,
+        workers=args.workers,
     )
     result = convert(options)  # a ConvertError is a UsageError: one line, exit 2 (cli_common.run_command)
     print(summary(result))

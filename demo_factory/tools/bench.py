@@ -150,7 +150,8 @@ def bench_render(frames: int) -> dict:
 
 
 def bench_conversion(episodes: int) -> dict:
-    """Converter frames per second next to a plain ``LeRobotDataset.add_frame`` loop on the same input."""
+    """Converter frames per second (one worker, and one per core) next to a plain ``LeRobotDataset.add_frame``
+    loop on the same input, in the same run."""
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
 
     from demo_factory.convert.converter import ConvertOptions, convert
@@ -163,10 +164,13 @@ def bench_conversion(episodes: int) -> dict:
         paths = iter_episode_paths(raw)
         frames = sum(len(read_episode(p).keyframes) for p in paths)
 
-        began = time.perf_counter()
-        convert(ConvertOptions(inputs=[raw], out=Path(folder) / "converted", repo_id="bench/converted",
-                               val_ratio=0.0, progress=False), log=lambda _: None)
-        converter_seconds = time.perf_counter() - began
+        seconds = {}
+        for workers in (1, os.cpu_count() or 1):
+            began = time.perf_counter()
+            convert(ConvertOptions(inputs=[raw], out=Path(folder) / f"converted_{workers}", repo_id="bench/converted",
+                                   val_ratio=0.0, progress=False, workers=workers), log=lambda _: None)
+            seconds[workers] = time.perf_counter() - began
+        converter_seconds = seconds[os.cpu_count() or 1]
 
         began = time.perf_counter()
         first = read_episode(paths[0])
@@ -180,8 +184,9 @@ def bench_conversion(episodes: int) -> dict:
             dataset.save_episode()
         dataset.finalize()
         reference_seconds = time.perf_counter() - began
-    return {"episodes": len(paths), "frames": frames,
+    return {"episodes": len(paths), "frames": frames, "workers": os.cpu_count() or 1,
             "converter_frames_per_second": frames / converter_seconds,
+            "converter_one_worker_frames_per_second": frames / seconds[1],
             "reference_add_frame_loop_frames_per_second": frames / reference_seconds,
             "converter_over_reference": reference_seconds / converter_seconds}
 
@@ -288,7 +293,7 @@ def main(argv=None) -> int:
     return 0
 
 
-FULL = {"speed_episodes": 20, "throughput_episodes": 12, "success_episodes": 100, "planner_queries": 1000,
+FULL = {"speed_episodes": 20, "throughput_episodes": 60, "success_episodes": 100, "planner_queries": 1000,
         "render_frames": 100, "conversion_episodes": 30, "history_episodes": 40, "train_steps": 40}
 QUICK = {"speed_episodes": 2, "throughput_episodes": 2, "success_episodes": 4, "planner_queries": 10,
          "render_frames": 5, "conversion_episodes": 3, "history_episodes": 3, "train_steps": 6}
