@@ -129,6 +129,49 @@ def bench_planner(queries: int, seed: int = 0) -> dict:
             "attempts_histogram": {str(k): attempts[k] for k in sorted(attempts)}}
 
 
+def bench_episode_profile(episodes: int) -> dict:
+    """Where a recorded push_buttons episode's time goes (keyframes, 3 cameras 128x128, one process):
+    seconds per episode in rendering, physics steps, planning (the planner's wall time, forks
+    included), inverse kinematics, MCAP encoding and writing, and the rest."""
+    from demo_factory.generate import run_episode
+    from demo_factory.record.writer import EpisodeWriter
+    from demo_factory.sim.kinematics import Kinematics
+    from demo_factory.sim.world import World
+
+    spent = Counter()
+    timed = [(World, "render_cameras", "render"), (World, "step", "physics"), (Kinematics, "inverse", "ik"),
+             (EpisodeWriter, "write_frame", "encode_and_write"), (EpisodeWriter, "close", "encode_and_write")]
+    originals = [(cls, name, getattr(cls, name)) for cls, name, _ in timed]
+
+    def timing(original, label):
+        def call(*args, **kwargs):
+            began = time.perf_counter()
+            try:
+                return original(*args, **kwargs)
+            finally:
+                spent[label] += time.perf_counter() - began
+        return call
+
+    for (cls, name, label), (_, _, original) in zip(timed, originals):
+        setattr(cls, name, timing(original, label))
+    requests = job_requests("push_buttons", "train", episodes + 1, base_seed=1234)
+    try:
+        with tempfile.TemporaryDirectory() as folder:
+            run_episode(requests[0], folder)  # warm-up: imports, caches, the process's IK solver
+            spent.clear()
+            began = time.perf_counter()
+            for request in requests[1:]:
+                spent["planning"] += sum(run_episode(request, folder).planning_seconds)
+            total = time.perf_counter() - began
+    finally:
+        for cls, name, original in originals:
+            setattr(cls, name, original)
+    figures = {label: seconds / episodes for label, seconds in spent.items()}
+    figures["other"] = total / episodes - sum(figures.values())
+    return {"episodes": episodes, "seconds_per_episode": total / episodes,
+            "seconds_per_episode_in": {k: round(v, 4) for k, v in sorted(figures.items())}}
+
+
 def bench_render(frames: int) -> dict:
     """Milliseconds to render one camera (RGB + depth + segmentation) at 128x128, per camera."""
     from demo_factory.sim import World
@@ -309,6 +352,7 @@ SECTIONS = {
         for task in ("push_buttons", "tower") for split in ("train", "test")},
     "ten_tasks_expert": lambda c: bench_suite_experts("ten_tasks", c["success_episodes"]),
     "planner": lambda c: bench_planner(c["planner_queries"]),
+    "episode_profile": lambda c: bench_episode_profile(c["speed_episodes"]),
     "camera_render": lambda c: bench_render(c["render_frames"]),
     "conversion": lambda c: bench_conversion(c["conversion_episodes"]),
     "hiveformer_cpu": lambda c: bench_hiveformer(),
