@@ -91,13 +91,19 @@ def test_same_seed_same_path_in_two_fresh_processes():
     assert paths[0] == paths[1] and len(paths[0]) >= 2
 
 
-def test_a_free_straight_line_is_the_path_without_sampling():
+def free_line_scene():
+    """An empty table and two hand poses joined by a free straight joint line; the arm at the first."""
     world = World()
     kinematics = Kinematics()
     start = kinematics.inverse([0.45, 0.2, 0.2, *TOP_DOWN])
     goal = kinematics.inverse([0.5, -0.1, 0.15, *TOP_DOWN])
     kinematics.close()
     world.reset_arm(start)
+    return world, start, goal
+
+
+def test_a_free_straight_line_is_the_path_without_sampling():
+    world, start, goal = free_line_scene()
     result = JointPlanner().plan(world, start, goal, episode_seed=5, transition=0)
     assert [a.status for a in result.attempts] == ["exact"]
     assert len(result.path) == 2 and np.array_equal(result.path[0], start) and np.array_equal(result.path[1], goal)
@@ -109,12 +115,7 @@ def test_the_straight_line_check_gives_the_world_back_as_it_was():
     are exactly as before afterwards (the check moved both along the line)."""
     import pybullet as p
 
-    world = World()
-    kinematics = Kinematics()
-    start = kinematics.inverse([0.45, 0.2, 0.2, *TOP_DOWN])
-    goal = kinematics.inverse([0.5, -0.1, 0.15, *TOP_DOWN])
-    kinematics.close()
-    world.reset_arm(start)
+    world, _, goal = free_line_scene()
     box = world.add_box((0.02,) * 3, (0.3, -0.3, 0.02), (0.2, 0.8, 0.2, 1))
     world.command_arm(goal)
     world.step(5)  # moving: velocities are not zero
