@@ -100,7 +100,8 @@ def _chart(path: Path, rows: list[dict]) -> None:
             attempts_axis.bar(labels, counts, bottom=bottom, label=f"{attempt} attempt{'s' if attempt > 1 else ''}")
             bottom = [b + c for b, c in zip(bottom, counts)]
     attempts_axis.set_title("planned transitions by attempts used", fontsize=9)
-    attempts_axis.legend(fontsize=7)
+    if any(bottom):  # a job of only straight moves planned nothing: no bars, no legend
+        attempts_axis.legend(fontsize=7)
     time_axis.bar(labels, [r["seconds_per_episode"] or 0.0 for r in rows], color="#55A868")
     time_axis.set_title("seconds per episode", fontsize=9)
     for axis in (attempts_axis, time_axis):
