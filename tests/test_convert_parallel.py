@@ -99,3 +99,11 @@ def _assert_same_items(a: Path, b: Path):
         assert x.keys() == y.keys()
         for key in x:
             assert torch.equal(x[key], y[key]) if isinstance(x[key], torch.Tensor) else x[key] == y[key], (index, key)
+
+
+def test_workers_below_one_are_refused_before_anything_is_written(recordings, tmp_path):
+    from demo_factory.convert.converter import ConvertError
+
+    with pytest.raises(ConvertError, match="--workers 0 is out of range; accepted: a whole number >= 1"):
+        convert(ConvertOptions(inputs=[recordings], out=tmp_path / "x", repo_id="me/x", workers=0, progress=False))
+    assert not (tmp_path / "x").exists()
