@@ -16,14 +16,32 @@ from demo_factory.convert.converter import ConvertOptions, convert, episode_batc
 from demo_factory.tasks import get_task
 
 
-def test_batches_are_consecutive_even_and_never_single_episodes():
+def test_batches_are_consecutive_even_and_not_too_small():
     episodes = list(range(7))
-    assert episode_batches(episodes, 1) == [episodes]
-    assert sorted(len(b) for b in episode_batches(episodes, 2)) == [3, 4]
-    assert sorted(len(b) for b in episode_batches(episodes, 8)) == [2, 2, 3]  # at least 2 each
-    assert episode_batches([0, 1, 2], 4) == [[0, 1, 2]]
+    assert episode_batches(episodes, 1, smallest=2) == [episodes]
+    assert sorted(len(b) for b in episode_batches(episodes, 2, smallest=2)) == [3, 4]
+    assert sorted(len(b) for b in episode_batches(episodes, 8, smallest=2)) == [2, 2, 3]  # at least 2 each
+    assert episode_batches([0, 1, 2], 4, smallest=2) == [[0, 1, 2]]
+    assert episode_batches(episodes, 2) == [episodes]  # by default a batch holds at least SMALLEST_BATCH
+    assert len(episode_batches(list(range(16)), 2)) == 2
     for workers in (1, 2, 3, 8):
-        assert [e for batch in episode_batches(episodes, workers) for e in batch] == episodes
+        assert [e for batch in episode_batches(episodes, workers, smallest=2) for e in batch] == episodes
+
+
+@pytest.fixture
+def small_batches(monkeypatch):
+    """Batches of 2 episodes, so that these few recordings are written in several; returns the number of
+    batches each merge took."""
+    from lerobot.datasets import aggregate
+
+    import demo_factory.convert.converter as converter
+
+    monkeypatch.setattr(converter, "SMALLEST_BATCH", 2)
+    merged = []
+    original = aggregate.aggregate_datasets
+    monkeypatch.setattr(aggregate, "aggregate_datasets",
+                        lambda repo_ids, *args, **kwargs: merged.append(len(repo_ids)) or original(repo_ids, *args, **kwargs))
+    return merged
 
 
 @pytest.fixture(scope="module")
@@ -68,9 +86,10 @@ def _assert_close(a, b, where=""):
 
 
 @pytest.mark.parametrize("workers", [2, 3])
-def test_parallel_batches_give_the_dataset_of_one_writer(recordings, tmp_path, workers):
+def test_parallel_batches_give_the_dataset_of_one_writer(recordings, tmp_path, workers, small_batches):
     one = _convert(recordings, tmp_path / "one", workers=1)
     many = _convert(recordings, tmp_path / "many", workers=workers)
+    assert small_batches == [workers]  # train (6 episodes) in batches of 3 or 2; val (2) in one
     for split in ("train", "val"):
         a, b = one / split, many / split
         assert _files(a) == _files(b), split

@@ -54,6 +54,9 @@ from demo_factory.tasks import TASKS, get_task
 # meta/info.json["demo_factory"]["format_version"]: 2 = variation ids numbered as the HiveFormer
 # paper (push_buttons, tower); datasets without it (version 1) used an older numbering.
 DATASET_FORMAT_VERSION = 2
+# A split is cut into batches of at least this many episodes: each batch costs a process, a dataset and
+# its share of the merge (~1-2 s), which below ~16 episodes a split (2 batches) costs more than it saves.
+SMALLEST_BATCH = 8
 IMAGE_WRITER_THREADS = 4  # PNG encoding in threads: the writer's bottleneck besides stats
 MULTI_TASK = "multi_task"  # the dataset's task label when the inputs' tasks form no named suite
 
@@ -399,10 +402,10 @@ def _provenance_row(planned: PlannedEpisode, index: int, frames: int, multi_task
     }
 
 
-def episode_batches(episodes: list, workers: int) -> list[list]:
-    """Consecutive batches of ``episodes`` for ``workers`` processes: at least 2 episodes in each
-    (a merge costs more than it saves below that), as even in size as possible."""
-    count = max(1, min(workers, len(episodes) // 2))
+def episode_batches(episodes: list, workers: int, smallest: int | None = None) -> list[list]:
+    """Consecutive batches of ``episodes`` for ``workers`` processes, as even in size as possible and
+    of at least ``smallest`` episodes (default ``SMALLEST_BATCH``) each."""
+    count = max(1, min(workers, len(episodes) // (smallest or SMALLEST_BATCH)))
     bounds = [round(i * len(episodes) / count) for i in range(count + 1)]
     return [episodes[a:b] for a, b in zip(bounds[:-1], bounds[1:])]
 
