@@ -12,7 +12,8 @@ import pandas as pd
 import pytest
 from test_convert import write_recording
 
-from demo_factory.convert.converter import ConvertOptions, convert, episode_batches
+from demo_factory.convert.converter import ConvertOptions, convert
+from demo_factory.convert.writer import episode_batches
 from demo_factory.tasks import get_task
 
 
@@ -34,9 +35,9 @@ def small_batches(monkeypatch):
     batches each merge took."""
     from lerobot.datasets import aggregate
 
-    import demo_factory.convert.converter as converter
+    from demo_factory.convert import writer
 
-    monkeypatch.setattr(converter, "SMALLEST_BATCH", 2)
+    monkeypatch.setattr(writer, "SMALLEST_BATCH", 2)
     merged = []
     original = aggregate.aggregate_datasets
     monkeypatch.setattr(aggregate, "aggregate_datasets",

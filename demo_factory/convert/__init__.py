@@ -1,8 +1,10 @@
 """Conversion: MCAP episode recordings → LeRobot v3.0 datasets, one per split, with a dataset card.
 
 Owns the dataset layout (`features`: feature names, shapes, depth packing, actions), the split plan
-(`splits`: train / val / unseen test splits and their instruction sources), the writer (`converter`), the
-card (`card`) and the training commands that fit each export (`usage`). Reads ``.mcap`` recordings, the
+(`splits`: train / val / unseen test splits and their instruction sources), the conversion run
+(`converter`: options, checks, survey, plan), the split writer (`writer`: LeRobot's writer in one process or
+in parallel batches merged with LeRobot's `aggregate_datasets`), the card (`card`) and the training
+commands that fit each export (`usage`). Reads ``.mcap`` recordings, the
 generation summaries beside them and human-instruction files; writes one LeRobot dataset folder per split
 (provenance in ``meta/info.json["demo_factory"]``, read back by `read_dataset_provenance`), ``README.md``
 and ``contact_sheet.png`` into the output folder, all at once (a staging folder renamed at the end).

@@ -1,0 +1,276 @@
+"""Writing one split as a LeRobot v3.0 dataset with LeRobot's own writer.
+
+One process writes a small split. A larger one is cut into consecutive batches of episodes, each
+written as its own LeRobot dataset by a forked process, merged in order with LeRobot's
+``aggregate_datasets``; the statistics that merge gets wrong (of episode, frame and task numbers) are
+recomputed, so the result is the dataset one writer makes (``tests/test_convert_parallel.py``). RGB
+mean and std are computed exactly here (LeRobot 0.4.4's overflow: see ``ImageMoments``).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import multiprocessing
+import queue
+import shutil
+from collections.abc import Callable
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from tqdm import tqdm
+
+from demo_factory.convert.features import (
+    CALIBRATION_LAYOUT,
+    DEPTH_ENCODING,
+    dataset_features,
+    dataset_frame,
+    episode_items,
+    image_key,
+)
+from demo_factory.convert.result import SplitSummary
+from demo_factory.convert.splits import PlannedEpisode, SplitPlan
+from demo_factory.record import read_episode
+
+# meta/info.json["demo_factory"]["format_version"]: 2 = variation ids numbered as the HiveFormer
+# paper (push_buttons, tower); datasets without it (version 1) used an older numbering.
+DATASET_FORMAT_VERSION = 2
+# A split is cut into batches of at least this many episodes: each batch costs a process, a dataset and
+# its share of the merge (~1-2 s), which below ~16 episodes a split (2 batches) costs more than it saves.
+SMALLEST_BATCH = 8
+IMAGE_WRITER_THREADS = 4  # PNG encoding in threads: the writer's bottleneck besides stats
+
+
+@dataclass(frozen=True)
+class Layout:
+    """What every split of one conversion shares: features, rate and where the frames come from."""
+
+    cameras: list[str]
+    image_size: tuple[int, int]
+    fps: int
+    granularity: str
+    action_space: str | None  # dense exports only
+    stride: int  # dense exports: every stride-th recorded dense frame is kept
+    recorded_fps: float
+    task: str  # the task, or a multi-task dataset's suite name
+    multi_task: bool
+
+
+class ImageMoments:
+    """Per-channel mean and standard deviation of RGB images, from exact integer sums.
+
+    LeRobot 0.4.4 squares uint8 pixels when it computes image statistics, which wraps around: the
+    stored standard deviations come out 30-60x too small (about 0.005 instead of 0.2-0.3), and a
+    policy that normalises images by them (ACT, diffusion) sees inputs blown up as much. The sums
+    are integers, so batches written apart and merged give exactly the figures of one writer.
+    """
+
+    def __init__(self):
+        self.count = 0
+        self.sums = np.zeros(3, dtype=np.int64)
+        self.squares = np.zeros(3, dtype=np.int64)
+
+    def add(self, rgb: np.ndarray) -> None:
+        pixels = rgb.reshape(-1, 3).astype(np.int64)
+        self.count += len(pixels)
+        self.sums += pixels.sum(axis=0)
+        self.squares += (pixels * pixels).sum(axis=0)
+
+    def merge(self, other: ImageMoments) -> None:
+        self.count += other.count
+        self.sums += other.sums
+        self.squares += other.squares
+
+    def mean_std(self) -> tuple[np.ndarray, np.ndarray]:
+        count = max(self.count, 1)
+        mean = self.sums / (255.0 * count)
+        return mean, np.sqrt(np.maximum(self.squares / (255.0 ** 2 * count) - mean ** 2, 0.0))
+
+
+def correct_image_stats(root: Path, moments: dict[str, ImageMoments]) -> None:
+    """Replace the mean and std of the RGB image features in ``meta/stats.json`` by exact ones."""
+    from lerobot.datasets.utils import load_stats, write_stats
+
+    stats = load_stats(root)
+    for key, moment in moments.items():
+        if key in stats and moment.count:
+            mean, std = moment.mean_std()
+            stats[key]["mean"], stats[key]["std"] = mean.reshape(3, 1, 1), std.reshape(3, 1, 1)
+    write_stats(stats, root)
+
+
+@dataclass
+class _Written:
+    """What writing some of a split's episodes produced, besides the LeRobot dataset itself."""
+
+    lengths: list[int] = field(default_factory=list)  # frames per episode
+    moments: dict[str, ImageMoments] = field(default_factory=dict)
+    provenance: list[dict] = field(default_factory=list)  # meta/info.json["demo_factory"]["episodes"] rows
+
+
+def _write_episodes(episodes: list[PlannedEpisode], root: Path, repo_id: str, layout: Layout, first_index: int,
+                    advance: Callable[[int], None]) -> _Written:
+    """Write ``episodes`` as one LeRobot dataset at ``root`` (which must not exist) with LeRobot's writer."""
+    import datasets  # heavy imports (torch), only when writing
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+    datasets.disable_progress_bars()  # one "Map" bar per episode otherwise; ours counts frames
+    features = dataset_features(layout.cameras, layout.image_size, layout.action_space)
+    dataset = LeRobotDataset.create(repo_id, layout.fps, features, root=root, use_videos=False,
+                                    image_writer_threads=IMAGE_WRITER_THREADS)
+    written = _Written(moments={image_key(camera): ImageMoments() for camera in layout.cameras})
+    try:
+        for index, planned in enumerate(episodes, start=first_index):
+            episode = read_episode(planned.source.path)
+            items = episode_items(episode, layout.granularity, layout.action_space, layout.stride)
+            for frame, action in items:
+                item = dataset_frame(episode, frame, planned.instruction, action)
+                for key, moment in written.moments.items():
+                    moment.add(item[key])
+                dataset.add_frame(item)
+                advance(1)
+            written.lengths.append(len(items))
+            dataset.save_episode()
+            written.provenance.append(_provenance_row(planned, index, len(items), layout.multi_task))
+        dataset.finalize()
+    finally:
+        dataset.stop_image_writer()
+    shutil.rmtree(root / "images", ignore_errors=True)  # empty once the PNGs are embedded in the parquet files
+    return written
+
+
+def _provenance_row(planned: PlannedEpisode, index: int, frames: int, multi_task: bool) -> dict:
+    row = planned.human
+    return {
+        "episode_index": index,
+        "recording": planned.source.path.name,
+        "variation_id": planned.source.variation_id,
+        "colours": list(planned.source.words),
+        "episode_seed": planned.source.episode_seed,
+        "instruction": planned.instruction,
+        "frames": frames,
+        **({"task": planned.source.task} if multi_task else {}),
+        **({"human_instruction_line": row.line, "author": row.author, "language": row.language,
+            **({"annotation_id": row.record_id} if row.record_id else {})} if row else {}),
+    }
+
+
+def episode_batches(episodes: list, workers: int, smallest: int | None = None) -> list[list]:
+    """Consecutive batches of ``episodes`` for ``workers`` processes, as even in size as possible and
+    of at least ``smallest`` episodes (default ``SMALLEST_BATCH``) each."""
+    count = max(1, min(workers, len(episodes) // (smallest or SMALLEST_BATCH)))
+    bounds = [round(i * len(episodes) / count) for i in range(count + 1)]
+    return [episodes[a:b] for a, b in zip(bounds[:-1], bounds[1:])]
+
+
+_PROGRESS: multiprocessing.Queue | None = None  # a batch worker's line to the parent's progress bar
+
+
+def _start_batch_worker(progress: multiprocessing.Queue) -> None:
+    global _PROGRESS
+    _PROGRESS = progress
+
+
+def _write_batch(episodes, root, repo_id, layout, first_index) -> _Written:
+    return _write_episodes(episodes, root, repo_id, layout, first_index, _PROGRESS.put)
+
+
+def _write_batches(batches: list[list[PlannedEpisode]], root: Path, repo_id: str, layout: Layout,
+                   advance: Callable[[int], None]) -> list[_Written]:
+    """Each batch written by its own forked process next to ``root``, then merged into ``root`` in
+    order by LeRobot's ``aggregate_datasets``."""
+    from lerobot.datasets.aggregate import aggregate_datasets
+
+    context = multiprocessing.get_context("fork")
+    progress = context.Queue()
+    parts = [root.parent / f".{root.name}.batch{i}" for i in range(len(batches))]
+    firsts = [sum(len(b) for b in batches[:i]) for i in range(len(batches))]
+    try:
+        with ProcessPoolExecutor(len(batches), mp_context=context, initializer=_start_batch_worker,
+                                 initargs=(progress,)) as pool:
+            futures = [pool.submit(_write_batch, batch, part, repo_id, layout, first)
+                       for batch, part, first in zip(batches, parts, firsts)]
+            while not all(f.done() for f in futures):
+                try:
+                    advance(progress.get(timeout=0.2))
+                except queue.Empty:
+                    pass
+            written = [f.result() for f in futures]  # a worker's error is raised here
+        while not progress.empty():
+            advance(progress.get())
+        with contextlib.redirect_stderr(io.StringIO()):  # its own progress bars; ours has counted the frames
+            aggregate_datasets([repo_id] * len(parts), repo_id, roots=parts, aggr_root=root)
+        restate_index_stats(root)
+    finally:
+        for part in parts:
+            shutil.rmtree(part, ignore_errors=True)
+    return written
+
+
+INDEX_FEATURES = ("episode_index", "index", "task_index")
+
+
+def restate_index_stats(root: Path) -> None:
+    """LeRobot 0.4.4's ``aggregate_datasets`` renumbers episodes, frames and tasks in the merged data
+    but keeps each source's statistics of those numbers (from its own 0): recompute them from the
+    merged data with LeRobot's ``compute_episode_stats`` and ``aggregate_stats``, per episode in
+    ``meta/episodes`` and overall in ``meta/stats.json``, as one writer computes them."""
+    import pandas as pd
+    from lerobot.datasets.compute_stats import aggregate_stats, compute_episode_stats
+    from lerobot.datasets.utils import load_info, load_stats, write_stats
+
+    features = {key: load_info(root)["features"][key] for key in INDEX_FEATURES}
+    data = pd.concat([pd.read_parquet(path, columns=list(INDEX_FEATURES))
+                      for path in sorted((root / "data").rglob("*.parquet"))], ignore_index=True)
+    per_episode = {int(e): compute_episode_stats({key: rows[key].to_numpy() for key in INDEX_FEATURES}, features)
+                   for e, rows in data.groupby("episode_index", sort=True)}
+    for path in sorted((root / "meta" / "episodes").rglob("*.parquet")):
+        episodes = pd.read_parquet(path)
+        for key in INDEX_FEATURES:
+            for stat in per_episode[int(episodes["episode_index"].iloc[0])][key]:
+                episodes[f"stats/{key}/{stat}"] = [per_episode[int(e)][key][stat] for e in episodes["episode_index"]]
+        episodes.to_parquet(path)  # as aggregate_datasets writes it
+    stats = load_stats(root)
+    stats.update(aggregate_stats([per_episode[e] for e in sorted(per_episode)]))
+    write_stats(stats, root)
+
+
+def write_split(plan: SplitPlan, root: Path, repo_id: str, layout: Layout, progress: tqdm | None = None,
+                workers: int = 1) -> SplitSummary:
+    """Write one split as a LeRobot dataset at ``root`` (which must not exist), with up to ``workers``
+    processes writing consecutive batches of its episodes."""
+    from lerobot.datasets.utils import load_info, write_info
+
+    advance = progress.update if progress is not None else (lambda _: None)
+    batches = episode_batches(plan.episodes, workers)
+    if len(batches) == 1:
+        parts = [_write_episodes(plan.episodes, root, repo_id, layout, 0, advance)]
+    else:
+        parts = _write_batches(batches, root, repo_id, layout, advance)
+    moments = {key: ImageMoments() for key in parts[0].moments}
+    for part in parts:
+        for key, moment in part.moments.items():
+            moments[key].merge(moment)
+    lengths = [n for part in parts for n in part.lengths]
+    correct_image_stats(root, moments)
+    info = load_info(root)
+    info["cameras"] = layout.cameras
+    info["depth_encoding"] = DEPTH_ENCODING
+    info["calibration_layout"] = CALIBRATION_LAYOUT
+    info["demo_factory"] = {
+        "format_version": DATASET_FORMAT_VERSION,
+        "task": layout.task,
+        "split": plan.name,
+        "instruction_source": plan.instruction_source,
+        "granularity": layout.granularity,
+        **({"action_space": layout.action_space, "control_fps": layout.fps, "recorded_dense_fps": layout.recorded_fps}
+           if layout.granularity == "dense" else {}),
+        "episodes": [row for part in parts for row in part.provenance],
+    }
+    write_info(info, root)
+    return SplitSummary(plan.name, repo_id, plan.instruction_source, len(plan.episodes), sum(lengths),
+                        len({e.source.variation_id for e in plan.episodes}), min(lengths, default=0))
+
+
