@@ -87,10 +87,16 @@ def _assert_close(a, b, where=""):
 
 
 @pytest.mark.parametrize("workers", [2, 3])
-def test_parallel_batches_give_the_dataset_of_one_writer(recordings, tmp_path, workers, small_batches):
+def test_parallel_batches_give_the_dataset_of_one_writer(recordings, tmp_path, workers, small_batches, monkeypatch):
+    import datasets
+
+    user_cache = tmp_path / "hf_datasets_cache"
+    monkeypatch.setattr(datasets.config, "HF_DATASETS_CACHE", user_cache)
     one = _convert(recordings, tmp_path / "one", workers=1)
     many = _convert(recordings, tmp_path / "many", workers=workers)
     assert small_batches == [workers]  # train (6 episodes) in batches of 3 or 2; val (2) in one
+    assert not user_cache.exists()  # the merge's Arrow copies went with the batches
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["many", "one"]  # no batch or cache folder left
     for split in ("train", "val"):
         a, b = one / split, many / split
         assert _files(a) == _files(b), split

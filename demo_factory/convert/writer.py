@@ -186,6 +186,7 @@ def _write_batches(batches: list[list[PlannedEpisode]], root: Path, repo_id: str
     context = multiprocessing.get_context("fork")
     progress = context.Queue()
     parts = [root.parent / f".{root.name}.batch{i}" for i in range(len(batches))]
+    cache = root.parent / f".{root.name}.merge-cache"
     firsts = [sum(len(b) for b in batches[:i]) for i in range(len(batches))]
     try:
         with ProcessPoolExecutor(len(batches), mp_context=context, initializer=_start_batch_worker,
@@ -200,13 +201,28 @@ def _write_batches(batches: list[list[PlannedEpisode]], root: Path, repo_id: str
             written = [f.result() for f in futures]  # a worker's error is raised here
         while not progress.empty():
             advance(progress.get())
-        with contextlib.redirect_stderr(io.StringIO()):  # its own progress bars; ours has counted the frames
+        # The merge reads each batch through `datasets`, which keeps an Arrow copy of it in its cache:
+        # that cache goes in a folder beside the batches, deleted with them, not in ~/.cache.
+        with contextlib.redirect_stderr(io.StringIO()), _datasets_cache(cache):
             aggregate_datasets([repo_id] * len(parts), repo_id, roots=parts, aggr_root=root)
         restate_index_stats(root)
     finally:
-        for part in parts:
-            shutil.rmtree(part, ignore_errors=True)
+        for folder in [*parts, cache]:
+            shutil.rmtree(folder, ignore_errors=True)
     return written
+
+
+@contextlib.contextmanager
+def _datasets_cache(folder: Path):
+    """``datasets``' cache in ``folder`` meanwhile (its HF_DATASETS_CACHE setting, read at each load)."""
+    import datasets
+
+    kept = datasets.config.HF_DATASETS_CACHE
+    datasets.config.HF_DATASETS_CACHE = type(kept)(folder)
+    try:
+        yield
+    finally:
+        datasets.config.HF_DATASETS_CACHE = kept
 
 
 INDEX_FEATURES = ("episode_index", "index", "task_index")
