@@ -2,13 +2,13 @@
 
 Two passes: every recording is read and checked first (so a bad file stops the run before anything
 is written), then each split is written with LeRobot's own writer into a hidden folder next to the
-output, which is moved into place only when everything succeeded. Writing a split (one process, or batches in several merged into one dataset) is ``convert.writer``'s.
+output, which is moved into place only when everything succeeded. Writing a split (in one process,
+or in batches merged into one dataset) is ``convert.writer``'s.
 """
 
 from __future__ import annotations
 
 import json
-import multiprocessing
 import os
 import shutil
 import time
@@ -346,8 +346,6 @@ def convert(options: ConvertOptions, log: Callable[[str], None] = print) -> Conv
     layout = Layout(found.cameras, found.image_size, found.fps, options.granularity, action_space, found.stride,
                     found.recorded_fps, found.task, len(found.tasks) > 1)
     workers = options.workers or os.cpu_count() or 1
-    if "fork" not in multiprocessing.get_all_start_methods():
-        workers = 1  # batches are written by forked processes (Linux); elsewhere by this one
     out = options.out
     staging = out.parent / f".{out.name}.partial-{os.getpid()}"
     out.parent.mkdir(parents=True, exist_ok=True)

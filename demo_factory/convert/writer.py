@@ -105,7 +105,6 @@ def correct_image_stats(root: Path, moments: dict[str, ImageMoments]) -> None:
 class _Written:
     """What writing some of a split's episodes produced, besides the LeRobot dataset itself."""
 
-    lengths: list[int] = field(default_factory=list)  # frames per episode
     moments: dict[str, ImageMoments] = field(default_factory=dict)
     provenance: list[dict] = field(default_factory=list)  # meta/info.json["demo_factory"]["episodes"] rows
 
@@ -131,7 +130,6 @@ def _write_episodes(episodes: list[PlannedEpisode], root: Path, repo_id: str, la
                     moment.add(item[key])
                 dataset.add_frame(item)
                 advance(1)
-            written.lengths.append(len(items))
             dataset.save_episode()
             written.provenance.append(_provenance_row(planned, index, len(items), layout.multi_task))
         dataset.finalize()
@@ -235,9 +233,9 @@ def restate_index_stats(root: Path) -> None:
     ``meta/episodes`` and overall in ``meta/stats.json``, as one writer computes them."""
     import pandas as pd
     from lerobot.datasets.compute_stats import aggregate_stats, compute_episode_stats
-    from lerobot.datasets.utils import load_info, load_stats, write_stats
+    from lerobot.datasets.utils import DEFAULT_FEATURES, load_stats, write_stats
 
-    features = {key: load_info(root)["features"][key] for key in INDEX_FEATURES}
+    features = {key: DEFAULT_FEATURES[key] for key in INDEX_FEATURES}
     data = pd.concat([pd.read_parquet(path, columns=list(INDEX_FEATURES))
                       for path in sorted((root / "data").rglob("*.parquet"))], ignore_index=True)
     per_episode = {int(e): compute_episode_stats({key: rows[key].to_numpy() for key in INDEX_FEATURES}, features)
@@ -260,6 +258,8 @@ def write_split(plan: SplitPlan, root: Path, repo_id: str, layout: Layout, progr
     from lerobot.datasets.utils import load_info, write_info
 
     advance = progress.update if progress is not None else (lambda _: None)
+    if "fork" not in multiprocessing.get_all_start_methods():
+        workers = 1  # batches are written by forked processes (Linux); elsewhere by this one
     batches = episode_batches(plan.episodes, workers)
     if len(batches) == 1:
         parts = [_write_episodes(plan.episodes, root, repo_id, layout, 0, advance)]
@@ -269,7 +269,8 @@ def write_split(plan: SplitPlan, root: Path, repo_id: str, layout: Layout, progr
     for part in parts:
         for key, moment in part.moments.items():
             moments[key].merge(moment)
-    lengths = [n for part in parts for n in part.lengths]
+    episodes = [row for part in parts for row in part.provenance]
+    lengths = [row["frames"] for row in episodes]
     correct_image_stats(root, moments)
     info = load_info(root)
     info["cameras"] = layout.cameras
@@ -283,7 +284,7 @@ def write_split(plan: SplitPlan, root: Path, repo_id: str, layout: Layout, progr
         "granularity": layout.granularity,
         **({"action_space": layout.action_space, "control_fps": layout.fps, "recorded_dense_fps": layout.recorded_fps}
            if layout.granularity == "dense" else {}),
-        "episodes": [row for part in parts for row in part.provenance],
+        "episodes": episodes,
     }
     write_info(info, root)
     return SplitSummary(plan.name, repo_id, plan.instruction_source, len(plan.episodes), sum(lengths),

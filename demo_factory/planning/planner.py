@@ -120,8 +120,10 @@ class CollisionChecker:
 
     def valid(self, q) -> bool:
         q = np.asarray(q)
-        if np.any(q < JOINT_LOWER) or np.any(q > JOINT_UPPER):
-            return False
+        return not (np.any(q < JOINT_LOWER) or np.any(q > JOINT_UPPER)) and self._free(q)
+
+    def _free(self, q) -> bool:
+        """No collision at ``q`` (joint limits not checked)."""
         self.set_configuration(q)
         return not self.in_collision()
 
@@ -130,13 +132,9 @@ class CollisionChecker:
         for a, b in zip(path[:-1], path[1:]):
             a, b = np.asarray(a, dtype=float), np.asarray(b, dtype=float)
             n = max(1, int(np.ceil(np.max(np.abs(b - a)) / max_step)))
-            states = a + np.linspace(0.0, 1.0, n + 1)[:, None] * (b - a)
-            if np.any(states < JOINT_LOWER) or np.any(states > JOINT_UPPER):
+            states = a + np.linspace(0.0, 1.0, n + 1)[:, None] * (b - a)  # limits checked for all at once
+            if np.any(states < JOINT_LOWER) or np.any(states > JOINT_UPPER) or not all(map(self._free, states)):
                 return False
-            for q in states:
-                self.set_configuration(q)
-                if self.in_collision():
-                    return False
         return True
 
 

@@ -7,6 +7,7 @@ smaller counts (for a smoke run); the defaults are the counts the issues ask for
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import platform
@@ -16,6 +17,7 @@ import tempfile
 import time
 from collections import Counter
 from pathlib import Path
+from unittest import mock
 
 import numpy as np
 from tqdm import tqdm
@@ -139,9 +141,6 @@ def bench_episode_profile(episodes: int) -> dict:
     from demo_factory.sim.world import World
 
     spent = Counter()
-    timed = [(World, "render_cameras", "render"), (World, "step", "physics"), (Kinematics, "inverse", "ik"),
-             (EpisodeWriter, "write_frame", "encode_and_write"), (EpisodeWriter, "close", "encode_and_write")]
-    originals = [(cls, name, getattr(cls, name)) for cls, name, _ in timed]
 
     def timing(original, label):
         def call(*args, **kwargs):
@@ -152,20 +151,18 @@ def bench_episode_profile(episodes: int) -> dict:
                 spent[label] += time.perf_counter() - began
         return call
 
-    for (cls, name, label), (_, _, original) in zip(timed, originals):
-        setattr(cls, name, timing(original, label))
     requests = job_requests("push_buttons", "train", episodes + 1, base_seed=1234)
-    try:
-        with tempfile.TemporaryDirectory() as folder:
-            run_episode(requests[0], folder)  # warm-up: imports, caches, the process's IK solver
-            spent.clear()
-            began = time.perf_counter()
-            for request in requests[1:]:
-                spent["planning"] += sum(run_episode(request, folder).planning_seconds)
-            total = time.perf_counter() - began
-    finally:
-        for cls, name, original in originals:
-            setattr(cls, name, original)
+    with contextlib.ExitStack() as patches, tempfile.TemporaryDirectory() as folder:
+        for cls, name, label in [(World, "render_cameras", "render"), (World, "step", "physics"),
+                                 (Kinematics, "inverse", "ik"), (EpisodeWriter, "write_frame", "encode_and_write"),
+                                 (EpisodeWriter, "close", "encode_and_write")]:
+            patches.enter_context(mock.patch.object(cls, name, timing(getattr(cls, name), label)))
+        run_episode(requests[0], folder)  # warm-up: imports, caches, the process's IK solver
+        spent.clear()
+        began = time.perf_counter()
+        for request in requests[1:]:
+            spent["planning"] += sum(run_episode(request, folder).planning_seconds)
+        total = time.perf_counter() - began
     figures = {label: seconds / episodes for label, seconds in spent.items()}
     figures["other"] = total / episodes - sum(figures.values())
     return {"episodes": episodes, "seconds_per_episode": total / episodes,
@@ -207,13 +204,14 @@ def bench_conversion(episodes: int) -> dict:
         paths = iter_episode_paths(raw)
         frames = sum(len(read_episode(p).keyframes) for p in paths)
 
+        cores = os.cpu_count() or 1
         seconds = {}
-        for workers in (1, os.cpu_count() or 1):
+        for workers in sorted({1, cores}):
             began = time.perf_counter()
             convert(ConvertOptions(inputs=[raw], out=Path(folder) / f"converted_{workers}", repo_id="bench/converted",
                                    val_ratio=0.0, progress=False, workers=workers), log=lambda _: None)
             seconds[workers] = time.perf_counter() - began
-        converter_seconds = seconds[os.cpu_count() or 1]
+        converter_seconds = seconds[cores]
 
         began = time.perf_counter()
         first = read_episode(paths[0])
@@ -227,7 +225,7 @@ def bench_conversion(episodes: int) -> dict:
             dataset.save_episode()
         dataset.finalize()
         reference_seconds = time.perf_counter() - began
-    return {"episodes": len(paths), "frames": frames, "workers": os.cpu_count() or 1,
+    return {"episodes": len(paths), "frames": frames, "workers": cores,
             "converter_frames_per_second": frames / converter_seconds,
             "converter_one_worker_frames_per_second": frames / seconds[1],
             "reference_add_frame_loop_frames_per_second": frames / reference_seconds,
