@@ -30,6 +30,7 @@ from demo_factory.convert.features import (
     episode_items,
     image_key,
 )
+from demo_factory.convert.lerobot_speedups import VALUES, faster_lerobot_writer
 from demo_factory.convert.result import SplitSummary
 from demo_factory.convert.splits import PlannedEpisode, SplitPlan
 from demo_factory.record import read_episode
@@ -73,10 +74,11 @@ class ImageMoments:
         self.squares = np.zeros(3, dtype=np.int64)
 
     def add(self, rgb: np.ndarray) -> None:
-        pixels = rgb.reshape(-1, 3).astype(np.int64)
+        pixels = rgb.reshape(-1, 3)
+        counts = np.stack([np.bincount(pixels[:, i], minlength=256) for i in range(3)])  # 7x the int64 sums
         self.count += len(pixels)
-        self.sums += pixels.sum(axis=0)
-        self.squares += (pixels * pixels).sum(axis=0)
+        self.sums += counts @ VALUES
+        self.squares += counts @ (VALUES * VALUES)
 
     def merge(self, other: ImageMoments) -> None:
         self.count += other.count
@@ -121,18 +123,19 @@ def _write_episodes(episodes: list[PlannedEpisode], root: Path, repo_id: str, la
                                     image_writer_threads=IMAGE_WRITER_THREADS)
     written = _Written(moments={image_key(camera): ImageMoments() for camera in layout.cameras})
     try:
-        for index, planned in enumerate(episodes, start=first_index):
-            episode = read_episode(planned.source.path)
-            items = episode_items(episode, layout.granularity, layout.action_space, layout.stride)
-            for frame, action in items:
-                item = dataset_frame(episode, frame, planned.instruction, action)
-                for key, moment in written.moments.items():
-                    moment.add(item[key])
-                dataset.add_frame(item)
-                advance(1)
-            dataset.save_episode()
-            written.provenance.append(_provenance_row(planned, index, len(items), layout.multi_task))
-        dataset.finalize()
+        with faster_lerobot_writer():  # the same dataset, written faster
+            for index, planned in enumerate(episodes, start=first_index):
+                episode = read_episode(planned.source.path)
+                items = episode_items(episode, layout.granularity, layout.action_space, layout.stride)
+                for frame, action in items:
+                    item = dataset_frame(episode, frame, planned.instruction, action)
+                    for key, moment in written.moments.items():
+                        moment.add(item[key])
+                    dataset.add_frame(item)
+                    advance(1)
+                dataset.save_episode()
+                written.provenance.append(_provenance_row(planned, index, len(items), layout.multi_task))
+            dataset.finalize()
     finally:
         dataset.stop_image_writer()
     shutil.rmtree(root / "images", ignore_errors=True)  # empty once the PNGs are embedded in the parquet files
