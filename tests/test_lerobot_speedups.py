@@ -4,7 +4,6 @@ import os
 
 os.environ.setdefault("HF_HUB_OFFLINE", "1")
 
-import contextlib
 import json
 import shutil
 
@@ -14,7 +13,6 @@ import pytest
 from lerobot.datasets import compute_stats
 from lerobot.datasets.compute_stats import get_feature_stats
 
-from demo_factory.convert import writer
 from demo_factory.convert.converter import ConvertOptions, convert
 from demo_factory.convert.features import dataset_frame, depth_key, image_key
 from demo_factory.convert.lerobot_speedups import faster_lerobot_writer
@@ -73,7 +71,12 @@ def test_other_features_and_other_lerobot_versions_run_lerobots_code(monkeypatch
         assert compute_stats.RunningQuantileStats is stock
 
 
-def test_a_converted_split_is_the_one_lerobots_own_code_writes(recorded_episodes, tmp_path, monkeypatch):
+@pytest.mark.parametrize("workers", [1, 2])
+def test_a_converted_split_is_the_one_lerobots_own_code_writes(recorded_episodes, tmp_path, monkeypatch, workers):
+    """One writer, or two batches merged (LeRobot's merge reads the batches' episode tables)."""
+    from demo_factory.convert import writer
+
+    monkeypatch.setattr(writer, "SMALLEST_BATCH", 1)
     raw = tmp_path / "raw"
     raw.mkdir()
     for path in recorded_episodes["push_buttons"]:
@@ -81,13 +84,20 @@ def test_a_converted_split_is_the_one_lerobots_own_code_writes(recorded_episodes
 
     def converted(name: str):
         out = tmp_path / name
-        convert(ConvertOptions(inputs=[raw], out=out, repo_id="me/speedups", val_ratio=0.0, progress=False),
-                log=lambda _: None)
+        convert(ConvertOptions(inputs=[raw], out=out, repo_id="me/speedups", val_ratio=0.0, progress=False,
+                               workers=workers), log=lambda _: None)
         return out / "train"
 
+    decoded = []  # (in this process: with 2 workers the batches are written by forked ones)
+    stock_loader = compute_stats.load_image_as_numpy
+    monkeypatch.setattr(compute_stats, "load_image_as_numpy", lambda *a, **k: decoded.append(a) or stock_loader(*a, **k))
     fast = converted("fast")
-    monkeypatch.setattr(writer, "faster_lerobot_writer", contextlib.nullcontext)
+    assert decoded == []  # every image's statistics came from the kept arrays
+    import lerobot
+
+    monkeypatch.setattr(lerobot, "__version__", "0.5.0")  # another version: LeRobot's own code throughout
     stock = converted("stock")
+    assert bool(decoded) == (workers == 1)  # LeRobot's own code decoded the PNGs again
     assert json.loads((fast / "meta" / "stats.json").read_text()) == json.loads((stock / "meta" / "stats.json").read_text())
     for relative in ("meta/episodes/chunk-000/file-000.parquet", "data/chunk-000/file-000.parquet"):
         a, b = pd.read_parquet(fast / relative), pd.read_parquet(stock / relative)

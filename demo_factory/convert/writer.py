@@ -123,7 +123,7 @@ def _write_episodes(episodes: list[PlannedEpisode], root: Path, repo_id: str, la
                                     image_writer_threads=IMAGE_WRITER_THREADS)
     written = _Written(moments={image_key(camera): ImageMoments() for camera in layout.cameras})
     try:
-        with faster_lerobot_writer():  # the same dataset, written faster
+        with faster_lerobot_writer() as images:  # the same dataset, written faster
             for index, planned in enumerate(episodes, start=first_index):
                 episode = read_episode(planned.source.path)
                 items = episode_items(episode, layout.granularity, layout.action_space, layout.stride)
@@ -132,8 +132,10 @@ def _write_episodes(episodes: list[PlannedEpisode], root: Path, repo_id: str, la
                     for key, moment in written.moments.items():
                         moment.add(item[key])
                     dataset.add_frame(item)
+                    images.keep(dataset, item)
                     advance(1)
                 dataset.save_episode()
+                images.clear()
                 written.provenance.append(_provenance_row(planned, index, len(items), layout.multi_task))
             dataset.finalize()
     finally:
@@ -204,7 +206,7 @@ def _write_batches(batches: list[list[PlannedEpisode]], root: Path, repo_id: str
             advance(progress.get())
         # The merge reads each batch through `datasets`, which keeps an Arrow copy of it in its cache:
         # that cache goes in a folder beside the batches, deleted with them, not in ~/.cache.
-        with contextlib.redirect_stderr(io.StringIO()), _datasets_cache(cache):
+        with contextlib.redirect_stderr(io.StringIO()), _datasets_cache(cache), faster_lerobot_writer():
             aggregate_datasets([repo_id] * len(parts), repo_id, roots=parts, aggr_root=root)
         restate_index_stats(root)
     finally:
