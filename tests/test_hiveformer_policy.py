@@ -327,3 +327,25 @@ def test_minilm_is_a_real_pretrained_encoder_that_needs_no_download(tiny_dataset
     batch = history_batch(tiny_dataset_root, policy.config, [2])
     loss, _ = policy.forward(batch)
     assert math.isfinite(loss.item())
+
+
+def test_measure_compute_times_each_part_of_every_rollout_step(tiny_dataset_root):
+    """The benchmark's split of a rollout step (measure_compute.py) times each part once per step."""
+    import importlib.util
+    from pathlib import Path
+
+    script = Path(__file__).parents[1] / "policies" / "lerobot_policy_hiveformer" / "measure_compute.py"
+    spec = importlib.util.spec_from_file_location("measure_compute", script)
+    measure = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(measure)
+    policy = make_tiny_policy(tiny_dataset_root)
+    config, _ = tiny_config(tiny_dataset_root)
+    batch = history_batch(tiny_dataset_root, config, [0, 1, 2])
+    steps = measure.timed_parts(policy)
+    policy.reset()
+    for step in range(3):
+        policy.select_action(single_step(batch, step))
+    assert len(steps) == 3
+    for parts in steps:
+        assert set(parts) == {"encoder", "transformer", "attention", "heads", "decoder"}
+        assert 0 < parts["attention"] < parts["transformer"] and 0 < parts["decoder"] < parts["heads"]

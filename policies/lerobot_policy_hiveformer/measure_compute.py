@@ -2,9 +2,11 @@
 
     python policies/lerobot_policy_hiveformer/measure_compute.py [--batch-size 8] [--threads 2] [--inference-threads 1]
 
-Times are medians over steps; `*_cpu_*` is the process's CPU time for the same steps (user + system, all
-threads), which tells a slow step on a busy machine (wall > CPU / threads) from a slow step. The load
-average is the machine's at the start. Peak RSS is the whole process's (the frozen text encoder
+Times are medians over steps. `inference_ms_by_part` splits a rollout step into the encoder's and the
+decoder's convolutions, the attention calls, the whole transformer and the heads (decoder included).
+`*_cpu_*` is the process's CPU time for the same steps (user + system, all threads), which tells a slow
+step on a busy machine (wall > CPU / threads) from a slow step. The load average is the machine's at
+the start. Peak RSS is the whole process's (the frozen text encoder
 included) after the training steps.
 
 The frozen text encoder has CLIP ViT-B/32's text architecture with random weights (saved to a temporary
@@ -71,6 +73,37 @@ def observation_batch(batch_size: int, steps: int | None, size: int) -> dict:
     return batch
 
 
+def timed_parts(policy) -> list[dict[str, float]]:
+    """From now on, each rollout step's seconds in its parts: one {part: seconds} per `select_action`.
+
+    "encoder" and "decoder" are the UNet's convolutions (with their GroupNorm and LeakyReLU),
+    "attention" the transformer's attention calls, "transformer" the whole of it (attention
+    included) and "heads" the decoder plus the rotation/gripper head.
+    """
+    steps: list[dict[str, float]] = []
+
+    def timed(name, function):
+        def call(*args, **kwargs):
+            start = time.perf_counter()
+            try:
+                return function(*args, **kwargs)
+            finally:
+                steps[-1][name] = steps[-1].get(name, 0.0) + time.perf_counter() - start
+
+        return call
+
+    select_action = policy.select_action
+    policy.select_action = lambda batch: steps.append({}) or select_action(batch)
+    model = policy.model
+    parts = [("encoder", model.encoder, "forward"), ("transformer", model, "contextualise"),
+             ("heads", model, "decode_steps"), ("decoder", model.decoder, "forward")]
+    parts += [("attention", attention, "forward") for layer in model.layers
+              for attention in (layer.cross_attention, layer.self_attention)]
+    for name, owner, method in parts:
+        setattr(owner, method, timed(name, getattr(owner, method)))
+    return steps
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
@@ -127,12 +160,15 @@ def main() -> None:
     torch.set_num_threads(args.inference_threads)
     policy.reset()
     durations = []
+    steps = timed_parts(policy)
     for _ in range(args.rollout_steps):
         observation = observation_batch(1, None, args.image_size)
         start = time.perf_counter()
         policy.select_action(observation)
         durations.append(time.perf_counter() - start)
     inference_ms = 1000 * float(np.median(durations[config.n_history :]))
+    part_ms = {name: round(1000 * float(np.median([step.get(name, 0.0) for step in steps[config.n_history :]])), 2)
+               for name in ("encoder", "transformer", "attention", "heads", "decoder")}
 
     print(
         json.dumps(
@@ -145,6 +181,7 @@ def main() -> None:
                 "attention_dropout": config.attention_dropout,
                 "peak_rss_gib_after_training": round(peak_rss_gib, 2),
                 "inference_ms_per_step_with_full_history": round(inference_ms, 1),
+                "inference_ms_by_part": part_ms,
                 "n_history": config.n_history,
                 "image_size": args.image_size,
                 "threads": args.threads,
