@@ -134,7 +134,10 @@ def bench_planner(queries: int, seed: int = 0) -> dict:
 def bench_episode_profile(episodes: int) -> dict:
     """Where a recorded push_buttons episode's time goes (keyframes, 3 cameras 128x128, one process):
     seconds per episode in rendering, physics steps, planning (the planner's wall time, forks
-    included), inverse kinematics, MCAP encoding and writing, and the rest."""
+    included), inverse kinematics, MCAP encoding and writing, and the rest; and, inside those, in
+    PyBullet's own stepping, rendering and IK calls."""
+    import pybullet
+
     from demo_factory.generate import run_episode
     from demo_factory.record.writer import EpisodeWriter
     from demo_factory.sim.kinematics import Kinematics
@@ -151,12 +154,16 @@ def bench_episode_profile(episodes: int) -> dict:
                 spent[label] += time.perf_counter() - began
         return call
 
+    # PyBullet's own calls, inside the parts above: the floor of an episode's time without changing it.
+    engine = {"stepSimulation": "step_simulation", "getCameraImage": "get_camera_image",
+              "calculateInverseKinematics": "calculate_inverse_kinematics"}
     requests = job_requests("push_buttons", "train", episodes + 1, base_seed=1234)
     with contextlib.ExitStack() as patches, tempfile.TemporaryDirectory() as folder:
-        for cls, name, label in [(World, "render_cameras", "render"), (World, "step", "physics"),
-                                 (Kinematics, "inverse", "ik"), (EpisodeWriter, "write_frame", "encode_and_write"),
-                                 (EpisodeWriter, "close", "encode_and_write")]:
-            patches.enter_context(mock.patch.object(cls, name, timing(getattr(cls, name), label)))
+        for owner, name, label in [(World, "render_cameras", "render"), (World, "step", "physics"),
+                                   (Kinematics, "inverse", "ik"), (EpisodeWriter, "write_frame", "encode_and_write"),
+                                   (EpisodeWriter, "close", "encode_and_write"),
+                                   *((pybullet, name, label) for name, label in engine.items())]:
+            patches.enter_context(mock.patch.object(owner, name, timing(getattr(owner, name), label)))
         run_episode(requests[0], folder)  # warm-up: imports, caches, the process's IK solver
         spent.clear()
         began = time.perf_counter()
@@ -164,9 +171,11 @@ def bench_episode_profile(episodes: int) -> dict:
             spent["planning"] += sum(run_episode(request, folder).planning_seconds)
         total = time.perf_counter() - began
     figures = {label: seconds / episodes for label, seconds in spent.items()}
+    inside = {label: figures.pop(label) for label in engine.values()}
     figures["other"] = total / episodes - sum(figures.values())
     return {"episodes": episodes, "seconds_per_episode": total / episodes,
-            "seconds_per_episode_in": {k: round(v, 4) for k, v in sorted(figures.items())}}
+            "seconds_per_episode_in": {k: round(v, 4) for k, v in sorted(figures.items())},
+            "seconds_per_episode_in_pybullet_calls": {k: round(v, 4) for k, v in sorted(inside.items())}}
 
 
 def bench_render(frames: int) -> dict:
