@@ -44,6 +44,7 @@ make one process write a keyframe dataset about 2x faster (``make bench``, ``con
 from __future__ import annotations
 
 import contextlib
+import functools
 
 import numpy as np
 
@@ -51,14 +52,12 @@ SUPPORTED_LEROBOT = "0.4.4"
 VALUES = np.arange(256)
 
 
-def _stock_class():
+@functools.cache
+def _counted_stats_class():
+    """:class:`CountedQuantileStats`, made on first use (LeRobot is a heavy import)."""
     from lerobot.datasets.compute_stats import RunningQuantileStats
 
-    return RunningQuantileStats
-
-
-def _make_class():
-    class CountedQuantileStats(_stock_class()):
+    class CountedQuantileStats(RunningQuantileStats):
         """``RunningQuantileStats`` whose first update of a uint8 batch works from pixel counts."""
 
         def update(self, batch: np.ndarray) -> None:
@@ -102,6 +101,7 @@ class EpisodeImages:
         """After ``dataset.add_frame(frame)``: remember its images (RGB uint8, height x width x 3)."""
         for key, feature in dataset.features.items():
             image = frame.get(key)
+            # (LeRobot writes a 3 x W x 3 array as channels-first: such an image is left to the file.)
             if feature["dtype"] == "image" and isinstance(image, np.ndarray) and image.dtype == np.uint8 \
                     and image.ndim == 3 and image.shape[-1] == 3 and image.shape[0] != 3:
                 self.by_path[dataset.episode_buffer[key][-1]] = image
@@ -126,8 +126,8 @@ class EpisodeImages:
 @contextlib.contextmanager
 def faster_lerobot_writer():
     """Meanwhile, LeRobot's episode statistics use :class:`CountedQuantileStats` on the images kept in
-    the :class:`EpisodeImages` it yields, and ``datasets`` gives new tables a random fingerprint
-    (LeRobot 0.4.4 only; with another version, nothing changes)."""
+    the :class:`EpisodeImages` it yields, ``datasets`` gives new tables a random fingerprint and
+    ``load_episodes`` reads with pyarrow (LeRobot 0.4.4 only; with another version, nothing changes)."""
     import lerobot
     from datasets import arrow_dataset, fingerprint
     from lerobot.datasets import compute_stats, utils
@@ -138,7 +138,7 @@ def faster_lerobot_writer():
         return
     stock = (compute_stats.RunningQuantileStats, compute_stats.load_image_as_numpy,
              arrow_dataset.generate_fingerprint, utils.load_nested_dataset)
-    compute_stats.RunningQuantileStats = _make_class()
+    compute_stats.RunningQuantileStats = _counted_stats_class()
     compute_stats.load_image_as_numpy = images.loader(stock[1])
     arrow_dataset.generate_fingerprint = lambda dataset: fingerprint.generate_random_fingerprint()
     utils.load_nested_dataset = _in_memory_loader(stock[3])

@@ -4,7 +4,8 @@ One process writes a small split. A larger one is cut into consecutive batches o
 written as its own LeRobot dataset by a forked process, merged in order with LeRobot's
 ``aggregate_datasets``; the statistics that merge gets wrong (of episode, frame and task numbers) are
 recomputed, so the result is the dataset one writer makes (``tests/test_convert_parallel.py``). RGB
-mean and std are computed exactly here (LeRobot 0.4.4's overflow: see ``ImageMoments``).
+mean and std are computed exactly here (LeRobot 0.4.4's overflow: see ``ImageMoments``). Writing and
+merging run with ``lerobot_speedups``' narrow speed-ups of LeRobot, which change nothing written.
 """
 
 from __future__ import annotations
@@ -75,7 +76,7 @@ class ImageMoments:
 
     def add(self, rgb: np.ndarray) -> None:
         pixels = rgb.reshape(-1, 3)
-        counts = np.stack([np.bincount(pixels[:, i], minlength=256) for i in range(3)])  # 7x the int64 sums
+        counts = np.stack([np.bincount(pixels[:, i], minlength=256) for i in range(3)])  # 7x faster than int64 sums
         self.count += len(pixels)
         self.sums += counts @ VALUES
         self.squares += counts @ (VALUES * VALUES)
