@@ -152,16 +152,15 @@ def faster_lerobot_writer():
 
 def _in_memory_loader(stock):
     """``load_nested_dataset`` that reads a table without features or filter into memory with pyarrow."""
+    import datasets
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+    from datasets.table import InMemoryTable
 
     def load_nested_dataset(pq_dir, features=None, episodes=None):
         paths = sorted(pq_dir.glob("*/*.parquet"))
         if features is not None or episodes is not None or not paths:
             return stock(pq_dir, features=features, episodes=episodes)
-        import datasets
-        import pyarrow as pa
-        import pyarrow.parquet as pq
-        from datasets.table import InMemoryTable
-
         return datasets.Dataset(InMemoryTable(pa.concat_tables([pq.read_table(path) for path in paths])))
 
     return load_nested_dataset

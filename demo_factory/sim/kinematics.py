@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import os
 
 import numpy as np
@@ -85,16 +86,14 @@ class Kinematics:
         return None
 
 
-_SHARED: dict[int, Kinematics] = {}
-
-
+@functools.cache
 def shared_kinematics() -> Kinematics:
     """This process's ``Kinematics``, made once: its answers depend on the call's arguments only (every
     call sets all joints first), so one serves every episode and connecting per episode is saved."""
-    pid = os.getpid()  # a forked child makes its own
-    if pid not in _SHARED:
-        _SHARED[pid] = Kinematics()
-    return _SHARED[pid]
+    return Kinematics()
+
+
+os.register_at_fork(after_in_child=shared_kinematics.cache_clear)  # a forked child makes its own
 
 
 def slerp_poses(start, goal, n: int) -> list[np.ndarray]:
