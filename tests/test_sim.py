@@ -66,3 +66,24 @@ def test_ik_refuses_unreachable_poses():
     kinematics = Kinematics()
     assert kinematics.inverse([1.5, 0.0, 0.2, *TOP_DOWN]) is None
     kinematics.close()
+
+
+def test_a_closed_worlds_client_serves_the_next_world_as_a_new_one():
+    def run(world):
+        box = world.add_box((0.03, 0.03, 0.03), (0.5, 0.0, 0.2), (0, 0, 1, 1))
+        world.command_arm(np.asarray(HOME) + 0.1)
+        world.step(60)
+        return [box, *world.arm_state(), *world.body_pose(box), world.render_cameras()["wrist"].rgb]
+
+    with World() as first:
+        client = first.client
+        first.add_box((0.02, 0.02, 0.02), (0.4, 0.2, 0.1), (1, 0, 0, 1))  # a different scene before
+        first.step(30)
+    with World() as reused:
+        assert reused.client == client  # reset, not a new connection
+        again = run(reused)
+    with World() as fresh_one, World() as fresh:  # the second cannot take a spare client
+        assert fresh.client != fresh_one.client
+        expected = run(fresh)
+    for got, want in zip(again, expected, strict=True):  # body ids, joints, box pose, image: bit for bit
+        np.testing.assert_array_equal(got, want)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import functools
 import os
 from importlib import metadata
 from pathlib import Path
@@ -191,4 +192,12 @@ class EpisodeWriter:
 
 
 def _matrix_to_quat(rotation: np.ndarray) -> np.ndarray:
-    return Rotation.from_matrix(rotation).as_quat()
+    return _quat_of_matrix_bytes(np.ascontiguousarray(rotation, dtype=np.float64).tobytes())
+
+
+@functools.lru_cache(maxsize=64)
+def _quat_of_matrix_bytes(rotation: bytes) -> np.ndarray:
+    """Memoised on the exact matrix: a fixed camera's rotation repeats in every frame (~0.14 ms each)."""
+    quaternion = Rotation.from_matrix(np.frombuffer(rotation).reshape(3, 3)).as_quat()
+    quaternion.flags.writeable = False
+    return quaternion

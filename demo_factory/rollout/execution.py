@@ -116,13 +116,15 @@ class KeyframeExecutor:
             duration = segment_seconds if speed is None else float(np.max(np.abs(b - a))) / speed
             steps = max(1, int(np.ceil(duration / TIME_STEP)))
             velocity = (b - a) / (steps * TIME_STEP)
-            for i in range(1, steps + 1):
-                world.command_arm(a + (b - a) * (i / steps), velocity)
+            targets = a + np.outer(np.arange(1, steps + 1) / steps, b - a)  # a + (b - a) * (i / steps)
+            for target in targets:
+                world.command_arm(target, velocity)
                 world.step()
         goal = waypoints[-1]
         world.command_arm(goal)
         for _ in range(SETTLE_STEPS):
-            if np.max(np.abs(world.joint_positions() - goal)) < 1e-3 and np.max(np.abs(world.joint_velocities())) < 1e-2:
+            positions, velocities = world.arm_state()
+            if np.max(np.abs(positions - goal)) < 1e-3 and np.max(np.abs(velocities)) < 1e-2:
                 break
             world.step()
 

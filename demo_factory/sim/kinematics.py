@@ -59,9 +59,8 @@ class Kinematics:
         pos, orn = list(pose[:3]), list(pose[3:])
         self._set(seed)
         q = p.calculateInverseKinematics(
-            self.robot, GRASP_LINK, pos, orn,
-            lowerLimits=list(JOINT_LOWER) + [0, 0], upperLimits=list(JOINT_UPPER) + [0.04, 0.04],
-            jointRanges=list(JOINT_UPPER - JOINT_LOWER) + [0.04, 0.04], restPoses=list(seed) + [0.02, 0.02],
+            self.robot, GRASP_LINK, pos, orn, lowerLimits=_LOWER_LIMITS, upperLimits=_UPPER_LIMITS,
+            jointRanges=_JOINT_RANGES, restPoses=[*np.asarray(seed, dtype=float).tolist(), 0.02, 0.02],
             maxNumIterations=100, residualThreshold=NULL_SPACE_RESIDUAL, physicsClientId=self.client,
         )
         self._set(q[:7])
@@ -72,11 +71,7 @@ class Kinematics:
 
     def inverse(self, pose, seed=HOME) -> np.ndarray | None:
         """Arm joints reaching ``pose`` near ``seed``, or None when the pose is unreachable."""
-        seeds = [np.asarray(seed, dtype=float), np.asarray(HOME, dtype=float)]
-        # Deterministic extra seeds derived from the target, for poses far from both.
-        rng = np.random.default_rng(np.round(np.asarray(pose) * 1e4).astype(np.int64) % (2**31))
-        seeds += [rng.uniform(JOINT_LOWER, JOINT_UPPER) for _ in range(4)]
-        for start in seeds:
+        for start in _seeds(pose, seed):
             q = self._solve(pose, start)
             if np.any(q < JOINT_LOWER - 1e-6) or np.any(q > JOINT_UPPER + 1e-6):
                 continue
@@ -84,6 +79,22 @@ class Kinematics:
             if dp <= POSITION_TOLERANCE and dr <= ORIENTATION_TOLERANCE:
                 return np.clip(q, JOINT_LOWER, JOINT_UPPER)
         return None
+
+
+# The null-space pass's limits, as lists once (the fingers' too: the IK covers every movable joint).
+_LOWER_LIMITS = [*JOINT_LOWER.tolist(), 0.0, 0.0]
+_UPPER_LIMITS = [*JOINT_UPPER.tolist(), 0.04, 0.04]
+_JOINT_RANGES = [*(JOINT_UPPER - JOINT_LOWER).tolist(), 0.04, 0.04]
+
+
+def _seeds(pose, seed):
+    """Where the IK starts: ``seed``, home, then four deterministic seeds derived from the target for poses
+    far from both (made only when those two fail, as they rarely do)."""
+    yield np.asarray(seed, dtype=float)
+    yield np.asarray(HOME, dtype=float)
+    rng = np.random.default_rng(np.round(np.asarray(pose) * 1e4).astype(np.int64) % (2**31))
+    for _ in range(4):
+        yield rng.uniform(JOINT_LOWER, JOINT_UPPER)
 
 
 @functools.cache
