@@ -64,7 +64,7 @@ def _floats(values) -> list[float]:
 
 
 # Physics clients of closed worlds, emptied by `p.resetSimulation`, for the next world to reuse: connecting
-# and disconnecting a client costs ~30 ms, a reset under 1 ms, and a reset client simulates exactly as a new
+# and disconnecting a client costs ~30 ms, a reset a few ms, and a reset client simulates exactly as a new
 # one (the recordings are byte-identical). A forked child makes its own.
 _spare_clients: list[int] = []
 os.register_at_fork(after_in_child=_spare_clients.clear)
