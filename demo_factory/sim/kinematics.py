@@ -55,12 +55,12 @@ class Kinematics:
         state = p.getLinkState(self.robot, GRASP_LINK, computeForwardKinematics=True, physicsClientId=self.client)
         return np.array([*state[4], *state[5]])
 
-    def _solve(self, pose, seed) -> np.ndarray:
+    def _solve(self, pose, seed: np.ndarray) -> np.ndarray:
         pos, orn = list(pose[:3]), list(pose[3:])
         self._set(seed)
         q = p.calculateInverseKinematics(
             self.robot, GRASP_LINK, pos, orn, lowerLimits=_LOWER_LIMITS, upperLimits=_UPPER_LIMITS,
-            jointRanges=_JOINT_RANGES, restPoses=[*np.asarray(seed, dtype=float).tolist(), 0.02, 0.02],
+            jointRanges=_JOINT_RANGES, restPoses=[*seed.tolist(), 0.02, 0.02],
             maxNumIterations=100, residualThreshold=NULL_SPACE_RESIDUAL, physicsClientId=self.client,
         )
         self._set(q[:7])
