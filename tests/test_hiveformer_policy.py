@@ -1,6 +1,9 @@
 """HiveFormer policy plugin on a tiny keyframe dataset written in the converter's format."""
 
 import math
+import platform
+import subprocess
+import sys
 
 import pytest
 import torch
@@ -12,7 +15,7 @@ from hiveformer_fixtures import (
     write_tiny_dataset,
 )
 from lerobot.policies.factory import make_policy, make_pre_post_processors
-from lerobot_policy_hiveformer import HiveformerConfig, HiveformerPolicy
+from lerobot_policy_hiveformer import HiveformerConfig, HiveformerPolicy, modeling_hiveformer
 from lerobot_policy_hiveformer.modeling_hiveformer import (
     ClipInstructionEncoder,
     gripper_mark,
@@ -349,3 +352,41 @@ def test_measure_compute_times_each_part_of_every_rollout_step(tiny_dataset_root
     for parts in steps:
         assert set(parts) == {"encoder", "transformer", "attention", "heads", "decoder"}
         assert 0 < parts["attention"] < parts["transformer"] and 0 < parts["decoder"] < parts["heads"]
+
+
+FAULTS_OF_REPEATED_BIG_TENSORS = """
+import resource, sys, torch
+from lerobot_policy_hiveformer.allocator import retain_freed_memory
+
+def faults() -> int:
+    before = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
+    for _ in range(5):
+        torch.ones(64 * 2**20 // 4)  # 64 MiB, freed at once
+    return resource.getrusage(resource.RUSAGE_SELF).ru_minflt - before
+
+faults()
+default = faults()
+applied = retain_freed_memory()
+faults()
+print(default, applied, faults())
+"""
+
+
+@pytest.mark.skipif(not (sys.platform == "linux" and platform.libc_ver()[0] == "glibc"), reason="glibc only")
+def test_retained_memory_is_not_faulted_in_again():
+    """Glibc's default maps every big tensor afresh (16,384 page faults per 64 MiB); after
+    `retain_freed_memory` a freed tensor's memory serves the next one. Run in its own process, since
+    the setting lasts for the process."""
+    result = subprocess.run([sys.executable, "-c", FAULTS_OF_REPEATED_BIG_TENSORS], capture_output=True, text=True,
+                            check=True)
+    default, applied, retained = result.stdout.split()
+    assert applied == "True"
+    assert int(default) >= 5 * 16_000 and int(retained) < 1_000
+
+
+@pytest.mark.parametrize("retain", [True, False])
+def test_the_policy_retains_freed_memory_unless_told_not_to(tiny_dataset_root, monkeypatch, retain):
+    calls = []
+    monkeypatch.setattr(modeling_hiveformer, "retain_freed_memory", lambda: calls.append(True))
+    make_tiny_policy(tiny_dataset_root, retain_freed_memory=retain)
+    assert calls == ([True] if retain else [])

@@ -101,6 +101,10 @@ class HiveformerConfig(PreTrainedConfig):
     optimizer_weight_decay: float = 5e-4
     optimizer_grad_clip_norm: float = 0.0
 
+    # Make glibc's malloc keep the memory tensors free instead of returning it to the kernel and faulting it
+    # in again (see allocator.py): CPU train steps take about half as long. The process keeps its peak heap.
+    retain_freed_memory: bool = True
+
     # Every input is consumed in physical units (see the class docstring); only IDENTITY is accepted.
     normalization_mapping: dict[str, NormalizationMode] = field(
         default_factory=lambda: {
