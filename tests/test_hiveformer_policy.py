@@ -261,6 +261,26 @@ def test_training_decodes_only_supervised_steps_with_the_same_predictions(tiny_d
     assert torch.allclose(decoded.pixel_attention, window.pixel_attention[supervised], atol=1e-6)
 
 
+def test_gradients_reach_every_feature_map_channels_last(tiny_dataset_root):
+    """The feature maps are channels-last; their gradients must be too (the encoder's skips are selected for
+    the supervised steps only), since LeakyReLU's and GroupNorm's backward passes on mixed layouts are ~8x
+    slower."""
+    policy = make_tiny_policy(tiny_dataset_root).train()
+    batch = history_batch(tiny_dataset_root, policy.config, [0, 1, 7])  # a selection: 4 of 6 real steps
+    layouts = {}
+    for name, module in policy.model.named_modules():
+        if isinstance(module, torch.nn.LeakyReLU | torch.nn.GroupNorm) and "rotation" not in name:
+            module.register_full_backward_hook(
+                lambda m, grad_in, grad_out, name=name: layouts.__setitem__(
+                    name, grad_out[0].is_contiguous(memory_format=torch.channels_last)
+                )
+            )
+    loss, _ = policy.forward(batch)
+    loss.backward()
+    assert len(layouts) == 2 + 2 * 4 + 2 * 4  # stem, encoder and decoder blocks
+    assert all(layouts.values()), [name for name, channels_last in layouts.items() if not channels_last]
+
+
 def test_only_contexts_a_rollout_produces_are_supervised(tiny_dataset_root):
     config, _ = tiny_config(tiny_dataset_root)  # history 3
     # Episode 3 has 6 keyframes: windows at keyframes 0..5 of it.
