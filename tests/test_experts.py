@@ -15,3 +15,30 @@ def test_expert_succeeds_on_at_least_19_of_20_seeded_episodes(task, split):
     assert len(failures) <= 1, failures
     # Every planned transition was logged with its attempts (1..10 each).
     assert all(1 <= a <= 10 for o in outcomes for a in o.attempts_per_transition)
+
+
+def test_push_buttons_expert_presses_9_mm_so_a_press_up_to_5_mm_high_still_counts():
+    """The expert's press pushes the cap the 9 mm it states (a press counts from 3 mm, as in RLBench), so a
+    policy's press may land up to ~6 mm above the demonstrated one."""
+    import numpy as np
+    import pybullet as p
+
+    from demo_factory.evaluate.env import KeyframeEnv, default_episodes
+    from demo_factory.tasks.push_buttons import PRESS_DEPTH
+
+    env = KeyframeEnv("push_buttons", default_episodes("push_buttons", "train", 1), image_size=(32, 32))
+    try:
+        travel = {}
+        for raised in (0.0, 0.005):
+            env.reset()
+            approach, press = env.expert_keyframes[:2]
+            env.step(np.r_[approach.pose, approach.gripper_open])
+            pose = np.asarray(press.pose, float) + [0, 0, raised, 0, 0, 0, 0]
+            env.executor.execute_predicted(pose, press.gripper_open, transition=2)
+            cap = env.sim_task.buttons[env.sim_task.instructed.words[0]]
+            travel[raised] = -p.getJointState(cap, 0, physicsClientId=env.world.client)[0]
+            assert env.sim_task.pressed_order == [env.sim_task.instructed.words[0]], raised
+    finally:
+        env.close()
+    assert PRESS_DEPTH - 0.0005 <= travel[0.0] <= PRESS_DEPTH, travel
+    assert travel[0.005] >= PRESS_DEPTH - 0.0055, travel
