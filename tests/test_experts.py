@@ -1,8 +1,12 @@
 """The scripted experts solve their tasks in physics, with the real planner."""
 
+import numpy as np
+import pybullet as p
 import pytest
 
+from demo_factory.evaluate.env import KeyframeEnv, default_episodes
 from demo_factory.generate import job_requests, run_requests
+from demo_factory.tasks.push_buttons import PRESS_DEPTH
 
 
 @pytest.mark.slow
@@ -20,12 +24,6 @@ def test_expert_succeeds_on_at_least_19_of_20_seeded_episodes(task, split):
 def test_push_buttons_expert_presses_9_mm_so_a_press_up_to_5_mm_high_still_counts():
     """The expert's press pushes the cap the 9 mm it states (a press counts from 3 mm, as in RLBench), so a
     policy's press may land up to ~6 mm above the demonstrated one."""
-    import numpy as np
-    import pybullet as p
-
-    from demo_factory.evaluate.env import KeyframeEnv, default_episodes
-    from demo_factory.tasks.push_buttons import PRESS_DEPTH
-
     env = KeyframeEnv("push_buttons", default_episodes("push_buttons", "train", 1), image_size=(32, 32))
     try:
         travel = {}

@@ -232,6 +232,7 @@ class World:
         ``getAABB`` is padded by 3 mm, which made presses 3 mm shallower than their stated depth.)
         """
         grasp_z = self.gripper_pose()[2]
-        lowest = min(point[5][2] for link in FINGER_JOINTS
-                     for point in p.getClosestPoints(self.robot, self.table, 1.0, linkIndexA=link, physicsClientId=self.client))
+        points = [point for link in FINGER_JOINTS for point in
+                  p.getClosestPoints(self.robot, self.table, 1.0, linkIndexA=link, physicsClientId=self.client)]
+        lowest = min(point[5][2] for point in points)  # positionOnA: on the finger
         return float(grasp_z - lowest)
