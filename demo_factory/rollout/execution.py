@@ -99,7 +99,7 @@ class KeyframeExecutor:
     def _cartesian(self, pose: np.ndarray) -> TransitionOutcome:
         start_pose = self.world.gripper_pose()
         distance, rotation = pose_error(start_pose, pose)
-        # Waypoints every 1 cm of travel and every 3 degrees of turning (a wrist turn in place).
+        # A waypoint every CARTESIAN_STEP of travel and every CARTESIAN_TURN_STEP of turning (a wrist turn in place).
         n = max(1, int(np.ceil(distance / CARTESIAN_STEP)), int(np.ceil(rotation / CARTESIAN_TURN_STEP)))
         q = self.world.joint_positions()
         waypoints = [q]
