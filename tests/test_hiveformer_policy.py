@@ -18,6 +18,7 @@ from lerobot.policies.factory import make_policy, make_pre_post_processors
 from lerobot_policy_hiveformer import HiveformerConfig, HiveformerPolicy, modeling_hiveformer
 from lerobot_policy_hiveformer.modeling_hiveformer import (
     ClipInstructionEncoder,
+    MultiHeadAttention,
     gripper_mark,
     keyframe_observations,
     project_to_pixels,
@@ -110,6 +111,23 @@ def test_later_steps_do_not_change_earlier_predictions(tiny_dataset_root):
     assert torch.equal(original.position[:, :-1], perturbed.position[:, :-1])
     assert torch.equal(original.quaternion[:, :-1], perturbed.quaternion[:, :-1])
     assert not torch.allclose(original.position[:, -1], perturbed.position[:, -1])
+
+
+@pytest.mark.parametrize("masked", [False, True])
+def test_attention_padded_to_the_fast_head_dimension_gives_the_same_outputs(monkeypatch, masked):
+    """On CPU, heads narrower than 16 are zero-padded for PyTorch's fused kernel; the result must be the
+    unpadded attention's (the paper's 64 wide, 8 heads: head dimension 8)."""
+    torch.manual_seed(0)
+    attention = MultiHeadAttention(dim=64, num_heads=8, dropout=0.0).eval()
+    queries, keys = torch.randn(2, 30, 64), torch.randn(2, 90, 64)
+    allowed = torch.rand(2, 1, 30, 90) > 0.3 if masked else None
+    if masked:
+        allowed[..., 0] = True  # every query sees at least one key
+    with torch.no_grad():
+        padded = attention(queries, keys, allowed)
+        monkeypatch.setattr(modeling_hiveformer, "FUSED_CPU_MIN_HEAD_DIM", 0)
+        plain = attention(queries, keys, allowed)
+    assert torch.allclose(padded, plain, atol=1e-6)
 
 
 def test_quaternion_loss_is_sign_invariant(tiny_dataset_root):

@@ -32,6 +32,8 @@ from .configuration_hiveformer import (
 
 ENCODER_CHANNELS = 16
 LEAKY_SLOPE = 0.02
+# The head dimension below which attention is zero-padded on CPU (see MultiHeadAttention).
+FUSED_CPU_MIN_HEAD_DIM = 16
 
 # --- Geometry: pure functions ----------------------------------------------------------------------
 
@@ -449,15 +451,19 @@ class MultiHeadAttention(nn.Module):
         head_dim = dim // self.num_heads
         q = self.query(queries).view(batch, length, self.num_heads, head_dim).transpose(1, 2)
         k, v = self.key_value(keys).view(batch, keys.shape[1], 2, self.num_heads, head_dim).unbind(2)
+        k, v = k.transpose(1, 2), v.transpose(1, 2)  # (B, heads, K, head_dim), like q
+        dropout = self.dropout if self.training else 0.0
         # Without dropout on the attention weights this takes PyTorch's fused kernel on CPU and GPU;
         # with it, CPU falls back to materialising the (B, heads, S, K) weights (see attention_dropout).
+        # The fused CPU kernel is slow at head dimensions under 16 (the paper's is 8): zero columns
+        # added to queries, keys and values leave every score and output unchanged and make a rollout's
+        # cross-attention (193 queries x 1,170 keys) ~1.4x faster.
+        padding = FUSED_CPU_MIN_HEAD_DIM - head_dim if q.device.type == "cpu" and dropout == 0.0 else 0
+        if padding > 0:
+            q, k, v = (F.pad(x, (0, padding)) for x in (q, k, v))
         attended = F.scaled_dot_product_attention(
-            q,
-            k.transpose(1, 2),
-            v.transpose(1, 2),
-            attn_mask=allowed,
-            dropout_p=self.dropout if self.training else 0.0,
-        )  # (B, heads, S, head_dim)
+            q, k, v, attn_mask=allowed, dropout_p=dropout, scale=head_dim**-0.5
+        )[..., :head_dim]  # (B, heads, S, head_dim)
         return self.out(attended.transpose(1, 2).reshape(batch, length, dim))
 
 
