@@ -390,6 +390,11 @@ def test_measure_compute_times_each_part_of_every_rollout_step(tiny_dataset_root
     for parts in steps:
         assert set(parts) == {"encoder", "transformer", "attention", "heads", "decoder"}
         assert 0 < parts["attention"] < parts["transformer"] and 0 < parts["decoder"] < parts["heads"]
+    attention = torch.nn.functional.scaled_dot_product_attention
+    alone = measure.kernels_alone_ms(policy, single_step(batch, 2), repeats=3)
+    assert set(alone) == {"convolutions", "attention"} and all(ms > 0 for ms in alone.values())
+    assert torch.nn.functional.scaled_dot_product_attention is attention  # put back
+    assert not any(module._forward_hooks for module in policy.modules())
 
 
 FAULTS_OF_REPEATED_BIG_TENSORS = """

@@ -49,6 +49,7 @@ PRESETS = {
             "steps": 1000, "batch_size": 8, "eval_episodes": 20},
 }
 DENSE_FPS = 20  # the dense export's control rate (ACT)
+TRAIN_SEED = 1000  # lerobot-train's own default
 
 
 def train_command(dataset_root: Path, output_dir: Path, steps: int = REFERENCE_STEPS,
@@ -138,6 +139,8 @@ def main(argv=None) -> int:
     parser.add_argument("--n-history", type=int, default=REFERENCE_HISTORY, help="HiveFormer keyframes of history")
     parser.add_argument("--eval-episodes", type=int, help="evaluation episodes per split (default: 40; ACT: 20)")
     parser.add_argument("--workers", type=int, default=2, help="generation processes")
+    parser.add_argument("--seed", type=int, default=TRAIN_SEED, help="lerobot-train's seed: other seeds show how "
+                        f"much the result varies with the initial weights and batch order (default: {TRAIN_SEED})")
     args = parser.parse_args(argv)
     for name, value in PRESETS[args.policy].items():
         if getattr(args, name, None) is None and name != "variations":
@@ -175,7 +178,7 @@ def main(argv=None) -> int:
     else:
         command = train_command(dataset / "train", train, args.steps, args.batch_size, args.text_encoder,
                                 args.n_history)
-    stage("train", checkpoint, timings, command, out)
+    stage("train", checkpoint, timings, command + [f"--seed={args.seed}"], out)
     stage("eval", evaluation / "results.json", timings,
           [str(BIN / "demo-factory"), "eval", "--policy.path", str(checkpoint), "--dataset", str(dataset),
            "--episodes", str(args.eval_episodes), "--out", str(evaluation), "--overwrite"], out)

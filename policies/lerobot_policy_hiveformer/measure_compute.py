@@ -4,6 +4,8 @@
 
 Times are medians over steps. `inference_ms_by_part` splits a rollout step into the encoder's and the
 decoder's convolutions, the attention calls, the whole transformer and the heads (decoder included).
+`inference_kernels_alone_ms` re-runs each convolution and attention call of one rollout step alone, on
+its own inputs (caches hot): the time those calls need with nothing else, below which a step cannot go.
 `*_cpu_*` is the process's CPU time for the same steps (user + system, all threads), which tells a slow
 step on a busy machine (wall > CPU / threads) from a slow step. The load average is the machine's at
 the start. Peak RSS is the whole process's (the frozen text encoder
@@ -15,6 +17,7 @@ parameter counts are those of the real model.
 """
 
 import argparse
+import functools
 import json
 import os
 import resource
@@ -23,6 +26,7 @@ import time
 
 import numpy as np
 import torch
+import torch.nn.functional as F  # noqa: N812
 from lerobot.configs.types import FeatureType, PolicyFeature
 from transformers import CLIPTextConfig, CLIPTextModel
 
@@ -104,6 +108,40 @@ def timed_parts(policy) -> list[dict[str, float]]:
     return steps
 
 
+def kernels_alone_ms(policy, observation: dict, repeats: int = 50) -> dict[str, float]:
+    """Milliseconds of one rollout step's convolutions and attention calls, each re-run alone (median of
+    `repeats`) on the inputs it had in the step; the policy should hold a full history already."""
+    calls = []
+
+    def record(module, inputs, _output):
+        calls.append(("convolutions", functools.partial(module, *inputs)))
+
+    hooks = [m.register_forward_hook(record) for m in policy.modules() if isinstance(m, torch.nn.Conv2d)]
+    attention = F.scaled_dot_product_attention
+
+    def recorded(*args, **kwargs):
+        calls.append(("attention", functools.partial(attention, *args, **kwargs)))
+        return attention(*args, **kwargs)
+
+    F.scaled_dot_product_attention = recorded
+    try:
+        policy.select_action(observation)
+    finally:
+        F.scaled_dot_product_attention = attention
+        for hook in hooks:
+            hook.remove()
+    totals = {"convolutions": 0.0, "attention": 0.0}
+    with torch.inference_mode():
+        for kind, call in calls:
+            durations = []
+            for _ in range(repeats):
+                start = time.perf_counter()
+                call()
+                durations.append(time.perf_counter() - start)
+            totals[kind] += 1000 * float(np.median(durations))
+    return {kind: round(ms, 2) for kind, ms in totals.items()}
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
@@ -113,7 +151,7 @@ def main() -> None:
     parser.add_argument("--threads", type=int, default=2, help="torch threads for the training steps")
     parser.add_argument("--inference-threads", type=int, default=1, help="torch threads for the rollout steps")
     parser.add_argument("--train-steps", type=int, default=5)
-    parser.add_argument("--rollout-steps", type=int, default=20)
+    parser.add_argument("--rollout-steps", type=int, default=60)
     parser.add_argument(
         "--attention-dropout",
         type=float,
@@ -169,6 +207,7 @@ def main() -> None:
     inference_ms = 1000 * float(np.median(durations[config.n_history :]))
     part_ms = {name: round(1000 * float(np.median([step.get(name, 0.0) for step in steps[config.n_history :]])), 2)
                for name in ("encoder", "transformer", "attention", "heads", "decoder")}
+    kernels_ms = kernels_alone_ms(policy, observation_batch(1, None, args.image_size))
 
     print(
         json.dumps(
@@ -182,6 +221,7 @@ def main() -> None:
                 "peak_rss_gib_after_training": round(peak_rss_gib, 2),
                 "inference_ms_per_step_with_full_history": round(inference_ms, 1),
                 "inference_ms_by_part": part_ms,
+                "inference_kernels_alone_ms": kernels_ms,
                 "n_history": config.n_history,
                 "image_size": args.image_size,
                 "threads": args.threads,
