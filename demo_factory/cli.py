@@ -34,13 +34,13 @@ from demo_factory.tasks import SPLITS, TASKS, get_task
 
 # -- commands ---------------------------------------------------------------------------------
 def cmd_tasks(args) -> int:
-    from demo_factory.suites import SUITES
+    from demo_factory.suites import SUITE_DESCRIPTIONS, SUITES
 
-    rows = [("task", "category", "variations", "train", "test", "description")]
+    rows = [("task", "categories", "variations", "train", "test", "description")]
     for name in sorted(TASKS):
         task = get_task(name)
-        rows.append((name, task.category, str(len(task.variations)), str(len(task.split_variations("train"))),
-                     str(len(task.split_variations("test"))), task.description))
+        rows.append((name, ", ".join(task.categories), str(len(task.variations)),
+                     str(len(task.split_variations("train"))), str(len(task.split_variations("test"))), task.description))
     widths = [max(len(r[i]) for r in rows) for i in range(5)]
     for row in rows:
         print("  ".join(cell.ljust(w) for cell, w in zip(row, widths)) + "  " + row[5])
@@ -48,7 +48,7 @@ def cmd_tasks(args) -> int:
     for name in TASKS:
         print(f"  {name.ljust(widths[0])}  {get_task(name).variation_scheme}")
     for suite, members in SUITES.items():
-        print(f"\nsuite {suite}: {', '.join(members)}")
+        print(f"\nsuite {suite}: {', '.join(members)}  ({SUITE_DESCRIPTIONS[suite]})")
     return 0
 
 
@@ -177,8 +177,9 @@ def build_parser() -> argparse.ArgumentParser:
     commands = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
     tasks = commands.add_parser("tasks", help="list the tasks, their categories, variation counts and split sizes",
-                                description="List the tasks, their categories, variation counts and train/test split "
-                                            "sizes, and the suites.")
+                                description="List the tasks, their categories (the HiveFormer paper's nine, a task may be "
+                                            "in several), variation counts and train/test split sizes, and the "
+                                            "suites (one per category among them).")
     tasks.set_defaults(run=cmd_tasks)
 
     gen = commands.add_parser(
@@ -190,7 +191,9 @@ def build_parser() -> argparse.ArgumentParser:
     which = gen.add_mutually_exclusive_group(required=True)
     which.add_argument("--task", choices=list(TASKS), help="task name (see `demo-factory tasks`)")
     which.add_argument("--suite", choices=sorted(suite_names()),
-                       help="every task of a suite (e.g. ten_tasks), each into OUT/<task>/ as its own job")
+                       help="every task of a suite, each into OUT/<task>/ as its own job: ten_tasks, categories (one task "
+                            "per category of the HiveFormer paper) or a category (e.g. motion_planner); "
+                            "`demo-factory tasks` lists them")
     gen.add_argument("--split", choices=SPLITS,
                      help="variation split (default: train; test when variations are named)")
     gen.add_argument("--episodes", type=positive_int, default=10,

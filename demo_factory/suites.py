@@ -1,12 +1,17 @@
 """Named task suites: the tasks a multi-task dataset is generated from.
 
-``ten_tasks`` is the HiveFormer paper's Table 1 multi-task set. ``demo-factory generate --suite``
-writes each task's episodes into its own sub-folder (``OUT/<task>/``), a complete single-task job
-with its own manifest and generation summary, so every task resumes, shards and converts alone;
+``ten_tasks`` is the HiveFormer paper's Table 1 multi-task set; ``categories`` takes one task from
+each of the paper's nine categories; and each category is a suite of its own (``motion_planner``:
+every task of that category), for studying one challenge. ``demo-factory generate --suite`` writes
+each task's episodes into its own sub-folder (``OUT/<task>/``), a complete single-task job with its
+own manifest and generation summary, so every task resumes, shards and converts alone;
 ``demo-factory convert --in OUT`` turns the whole folder into one multi-task dataset.
 """
 
 from __future__ import annotations
+
+from demo_factory.tasks import TASKS
+from demo_factory.tasks.categories import CATEGORIES, suite_name
 
 SUITES: dict[str, tuple[str, ...]] = {
     "ten_tasks": (
@@ -21,6 +26,26 @@ SUITES: dict[str, tuple[str, ...]] = {
         "take_money_out_safe",
         "take_umbrella_out_of_umbrella_stand",
     ),
+    # One single-goal task per category, in the order of CATEGORIES.
+    "categories": (
+        "stack_wine",
+        "slide_block_to_target",
+        "wipe_desk",
+        "reach_target",
+        "open_drawer",
+        "pick_up_cup",
+        "put_knife_on_chopping_board",
+        "turn_oven_on",
+        "put_money_in_safe",
+    ),
+    **{suite_name(category): tuple(name for name, task in TASKS.items() if category in task.categories)
+       for category in CATEGORIES},
+}
+
+SUITE_DESCRIPTIONS: dict[str, str] = {
+    "ten_tasks": "the HiveFormer paper's multi-task set",
+    "categories": "one task from each of the HiveFormer paper's nine task categories",
+    **{suite_name(category): f"every task of the HiveFormer paper's {category} category" for category in CATEGORIES},
 }
 
 

@@ -24,7 +24,7 @@ class TouchSpheresInOrder(Task):
 
     name = "touch_spheres_in_order"
     description = "Touch the instructed coloured spheres in order."
-    category = "rotation-invariant"
+    categories = ("rotation-invariant",)
     palette = TOWER_COLOURS[:4]
     max_sequence = 2
     n_train = n_test = 4

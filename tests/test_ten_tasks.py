@@ -11,21 +11,42 @@ from demo_factory.rollout import SETTLE_AFTER_STEPS, KeyframeExecutor, start_sce
 from demo_factory.sim import Kinematics
 from demo_factory.suites import SUITES
 from demo_factory.tasks import MULTI_VARIATION_TASKS, TASKS, get_task
-from demo_factory.tasks.base import CATEGORIES
+from demo_factory.tasks.categories import CATEGORIES, PAPER_CATEGORIES, paper_categories, suite_name
 
 TEN = SUITES["ten_tasks"]
-# Every registered task with a single goal per variation (the paper's ten, turn_tap beyond them so that every
-# category has one, and any task registered later); the multi-variation tasks have tests/test_tasks.py.
+# Every registered task with a single goal per variation (the paper's ten, the tasks beyond them that give every
+# category two, and any task registered later); the multi-variation tasks have tests/test_tasks.py.
 ONE_GOAL = tuple(name for name in TASKS if name not in MULTI_VARIATION_TASKS)
 
 
-def test_the_suite_has_ten_registered_tasks_each_with_a_category():
+def test_the_suite_has_ten_registered_tasks():
     assert len(TEN) == 10 and set(TEN) <= set(TASKS)
-    assert all(get_task(name).category in CATEGORIES for name in TASKS)
 
 
-def test_every_category_has_a_task():
-    assert {get_task(name).category for name in TASKS} == set(CATEGORIES)
+def test_the_paper_lists_74_tasks_in_nine_categories_push_buttons_in_two():
+    listed = [name for names in PAPER_CATEGORIES.values() for name in names]
+    assert len(CATEGORIES) == 9 and len(set(listed)) == 74
+    assert paper_categories("push_buttons") == ("planning", "rotation-invariant")
+    assert [name for name in set(listed) if listed.count(name) > 1] == ["push_buttons"]
+
+
+@pytest.mark.parametrize("name", TASKS)
+def test_every_tag_is_the_papers(name):
+    task = get_task(name)
+    assert task.categories and task.categories == paper_categories(task.paper_name or name)
+
+
+def test_every_category_has_two_tasks_and_the_registry_19():
+    assert len(TASKS) >= 19
+    for category in CATEGORIES:
+        assert len([name for name in TASKS if category in get_task(name).categories]) >= 2, category
+
+
+def test_suites_by_category():
+    assert {category for name in SUITES["categories"] for category in get_task(name).categories} == set(CATEGORIES)
+    assert SUITES["motion_planner"] == ("open_drawer", "close_drawer")
+    for category in CATEGORIES:
+        assert SUITES[suite_name(category)] == tuple(n for n in TASKS if category in get_task(n).categories)
 
 
 @pytest.mark.parametrize("name", ONE_GOAL)
@@ -88,8 +109,10 @@ def test_tasks_command_lists_category_and_variation_count(capsys):
     for name in TEN:
         line = next(line for line in out.splitlines() if line.startswith(name + " "))
         task = get_task(name)
-        assert task.category in line and f" {len(task.variations)} " in line
+        assert ", ".join(task.categories) in line and f" {len(task.variations)} " in line
+    assert "planning, rotation-invariant" in next(line for line in out.splitlines() if line.startswith("push_buttons "))
     assert "suite ten_tasks: reach_target, push_button" in out
+    assert "suite screw: turn_oven_on, open_wine_bottle  (every task of the HiveFormer paper's screw category)" in out
 
 
 def test_suite_generation_refuses_task_options():

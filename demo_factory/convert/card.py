@@ -26,7 +26,7 @@ from demo_factory.convert.usage import act_chunk, gate_command, load_command, qu
 from demo_factory.instructions import COLOUR_SYNONYMS, hiveformer_annotations
 from demo_factory.instructions.human import sentence_rows
 from demo_factory.record import read_episode
-from demo_factory.suites import SUITES
+from demo_factory.suites import SUITE_DESCRIPTIONS, SUITES
 from demo_factory.tasks import TASKS, get_task
 
 TEMPLATE = Path(__file__).resolve().parents[2] / "dataset_cards" / "template.md"
@@ -127,6 +127,14 @@ def _feature_rows(cameras: list[str], image_size: tuple[int, int], action_space:
     return "\n".join(rows)
 
 
+def _categories(task) -> str:
+    """``category is planning`` or ``categories are planning and rotation-invariant``."""
+    names = task.categories
+    if len(names) == 1:
+        return f"category is {names[0]}"
+    return f"categories are {', '.join(names[:-1])} and {names[-1]}"
+
+
 def _variation_text(task) -> str:
     """How variations and the seen / unseen splits work, for one task or (``None``) a suite."""
     if task is not None and task.paper_numbering is not None:
@@ -192,7 +200,8 @@ def render_card(result: ConvertResult, template: Path = TEMPLATE) -> str:
     if task is not None:
         v = task.split_variations("train")[len(task.split_variations("train")) // 2]
         example = "; ".join(f'"{t}"' for t in task.synthetic_instructions(v))
-        task_text = (f"{task.description} Palette ({len(task.palette)} colours): {', '.join(task.palette)}. "
+        task_text = (f"{task.description} The HiveFormer paper's task {_categories(task)}. "
+                     f"Palette ({len(task.palette)} colours): {', '.join(task.palette)}. "
                      f"Synthetic instruction templates, e.g. for {', '.join(v.words)}: {example}.")
         default_test = {v.id for v in task.split_variations("test")}
         named = sorted({(s.variation_id, ",".join(s.words)) for s in result.sources
@@ -202,10 +211,10 @@ def render_card(result: ConvertResult, template: Path = TEMPLATE) -> str:
                           f"default test set): {'; '.join(f'{vid} ({colours})' for vid, colours in named)}.")
     elif result.task in SUITES:
         members = [get_task(name) for name in SUITES[result.task]]
-        task_text = (f"The {result.task} suite (the HiveFormer paper's multi-task set) in one multi-task dataset: "
+        task_text = (f"The {result.task} suite ({SUITE_DESCRIPTIONS[result.task]}) in one multi-task dataset: "
                      "each frame's `task` string is its episode's instruction.\n\n"
-                     "| task | category | variations (train / test) | goal |\n|---|---|---|---|\n"
-                     + "\n".join(f"| `{t.name}` | {t.category} | {len(t.split_variations('train'))} / "
+                     "| task | categories | variations (train / test) | goal |\n|---|---|---|---|\n"
+                     + "\n".join(f"| `{t.name}` | {', '.join(t.categories)} | {len(t.split_variations('train'))} / "
                                   f"{len(t.split_variations('test'))} ({t.variation_kind}) | {t.description} |"
                                   for t in members))
     else:

@@ -33,9 +33,6 @@ class KeyframeTarget:
     motion: str
 
 
-CATEGORIES = ("planning", "tools", "long term", "rotation-invariant", "motion planner", "multimodal",
-              "precision", "screw", "visual occlusion")  # the HiveFormer supplement's task categories
-
 
 class Task(ABC):
     """A tabletop task with enumerated variations. Subclasses register themselves in ``registry``.
@@ -56,7 +53,8 @@ class Task(ABC):
 
     name: str
     description: str
-    category: str  # one of CATEGORIES
+    categories: tuple[str, ...]  # the paper's categories of the task (``categories.PAPER_CATEGORIES``)
+    paper_name: str | None = None  # the task's name in the paper's lists, where it differs from ``name``
     palette: tuple[str, ...]
     variation_kind: str = "colour"
     max_sequence: int = 3

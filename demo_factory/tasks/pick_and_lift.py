@@ -30,7 +30,7 @@ def folded_yaw(orientation) -> float:
 class PickAndLift(Task):
     name = "pick_and_lift"
     description = "Grasp the instructed coloured block and lift it to the translucent target sphere."
-    category = "rotation-invariant"
+    categories = ("rotation-invariant",)
     palette = TOWER_COLOURS
     max_sequence = 1
     n_train = n_test = 10

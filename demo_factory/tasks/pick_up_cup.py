@@ -38,7 +38,7 @@ def cup_parts(colour: str) -> list[Part]:
 class PickUpCup(Task):
     name = "pick_up_cup"
     description = "Grasp the instructed coloured cup by its rim and lift it; a cup of another colour is a distractor."
-    category = "multimodal"
+    categories = ("multimodal",)
     palette = TOWER_COLOURS
     max_sequence = 1
     n_train = n_test = 10

@@ -11,7 +11,7 @@ class PushButton(PushButtons):
 
     name = "push_button"
     description = "Press the instructed coloured button once; two other buttons are distractors."
-    category = "rotation-invariant"
+    categories = ("rotation-invariant",)
     max_sequence = 1
     n_train = n_test = 9
     split_seed = 20220302

@@ -35,7 +35,7 @@ def _sequence_text(colours: tuple[str, ...], fmt: str, then: str, last_then: str
 class PushButtons(Task):
     name = "push_buttons"
     description = "Push 1-3 of three coloured buttons in the instructed order."
-    category = "long term"
+    categories = ("planning", "rotation-invariant")
     palette = PUSH_BUTTON_COLOURS
     # The fork's 18 x 17 x 16 + 18 x 17 + 18 = 5220 sequences, every one of them: ids 0-5219.
     paper_numbering = PaperNumbering("push_buttons3", per_length=5220, total=5220)

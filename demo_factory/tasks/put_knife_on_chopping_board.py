@@ -35,7 +35,7 @@ def yaw_rotation(yaw: float) -> tuple[float, ...]:
 class PutKnifeOnChoppingBoard(PlacementTask):
     name = "put_knife_on_chopping_board"
     description = "Grasp the knife by its handle and lay it flat on the chopping board."
-    category = "precision"
+    categories = ("precision",)
 
     def synthetic_instructions(self, variation: Variation) -> list[str]:
         return ["put the knife on the chopping board", "place the knife onto the board",

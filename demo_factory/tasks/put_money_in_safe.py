@@ -17,7 +17,7 @@ INSERT_TRAVEL = 0.15  # the straight slide into the compartment (starts with the
 class PutMoneyInSafe(SafeTask):
     name = "put_money_in_safe"
     description = "Take the banknote bundle off the table and put it on the instructed shelf of the open safe."
-    category = "motion planner"
+    categories = ("visual occlusion",)
 
     def synthetic_instructions(self, variation: Variation) -> list[str]:
         s = variation.words[0]

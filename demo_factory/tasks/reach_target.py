@@ -20,7 +20,7 @@ MIN_SPACING = 0.12
 class ReachTarget(Task):
     name = "reach_target"
     description = "Touch the instructed coloured sphere with the gripper; two others are distractors."
-    category = "rotation-invariant"
+    categories = ("rotation-invariant",)
     palette = TOWER_COLOURS
     max_sequence = 1
     n_train = n_test = 10

@@ -21,7 +21,7 @@ START_REGION = ((0.4, 0.52), (-0.12, 0.12))
 class SlideBlockToTarget(PlacementTask):
     name = "slide_block_to_target"
     description = "Push the red block across the table onto the green target square."
-    category = "tools"
+    categories = ("tools",)
 
     def synthetic_instructions(self, variation: Variation) -> list[str]:
         return ["slide the block to the target", "push the red block onto the green square",

@@ -46,7 +46,7 @@ def bottle_parts() -> list[Part]:
 class StackWine(Task):
     name = "stack_wine"
     description = "Take the wine bottle and stand it in the instructed slot of the wine rack."
-    category = "planning"
+    categories = ("planning",)
     palette = SLOTS
     variation_kind = "slot"
     max_sequence = 1

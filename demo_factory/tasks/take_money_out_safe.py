@@ -20,7 +20,7 @@ OUT_OF_SAFE = 0.08  # the note's centre must end this far in front of the safe
 class TakeMoneyOutSafe(SafeTask):
     name = "take_money_out_safe"
     description = "Take the banknote bundle from the instructed shelf of the open safe and put it on the table."
-    category = "visual occlusion"
+    categories = ("visual occlusion",)
 
     def synthetic_instructions(self, variation: Variation) -> list[str]:
         s = variation.words[0]

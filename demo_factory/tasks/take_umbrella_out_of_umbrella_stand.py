@@ -44,7 +44,7 @@ def umbrella_parts() -> list[Part]:
 class TakeUmbrellaOutOfUmbrellaStand(PlacementTask):
     name = "take_umbrella_out_of_umbrella_stand"
     description = "Grasp the umbrella's handle and lift it straight up out of its stand."
-    category = "precision"
+    categories = ("precision",)
 
     def synthetic_instructions(self, variation) -> list[str]:
         return ["take the umbrella out of the umbrella stand", "lift the umbrella out of the stand",

@@ -24,7 +24,8 @@ HEIGHT_TOLERANCE = 0.01
 class Tower(Task):
     name = "tower"
     description = "Stack 1-3 instructed coloured cubes in order on the target spot; other cubes are distractors."
-    category = "long term"
+    categories = ("planning",)
+    paper_name = "tower3"
     palette = TOWER_COLOURS
     # The fork keeps 200 sequences (200 per length, then 200 of the 420); its 100 test variations
     # 100-199 are exactly the colour sequences of the authors' annotations.json. Ids 200 on are the

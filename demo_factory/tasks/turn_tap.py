@@ -49,7 +49,7 @@ def _make_tap(world, position) -> int:
 class TurnTap(Task):
     name = "turn_tap"
     description = "Grasp the instructed tap's handle and turn it a quarter turn; the other tap stays shut."
-    category = "screw"
+    categories = ("multimodal",)
     palette = TAPS
     variation_kind = "tap"
     max_sequence = 1
