@@ -22,25 +22,28 @@ from demo_factory.tasks.variations import Variation
 DRAWERS = ("bottom", "middle", "top")
 WALL = 0.012  # m, carcass board thickness
 DEPTH = 0.2  # m, the carcass front to back
-HALF_WIDTH = 0.15  # m, half the carcass width
-PLINTH = 0.08  # m, the plinth under the lowest drawer: the handles stand 13.5, 25.5 and 37.5 cm high
-SLOT = 0.11  # m, the height of each drawer's opening (the hand at a bar clears the bar above)
+HALF_WIDTH = 0.12  # m, half the carcass width
+# The chest is low and narrow so that both shoulder cameras (their view ends ~28-30 cm above the table
+# there) see every handle; the slots are no lower than the hand's clearance of the bar above allows.
+PLINTH = 0.015  # m, the plinth under the lowest drawer: the handles stand 6, 16 and 26 cm high
+SLOT = 0.09  # m, the height of each drawer's opening (the hand at a bar clears the bar above)
 DIVIDER = 0.01  # m, the board between two openings
 FRONT_THICKNESS = 0.015  # m, the drawer front panel
 FRONT_GAP = 0.003  # m, around a front panel inside its opening
 TRAY_DEPTH = 0.17  # m, the drawer box behind the front
-TRAY_HEIGHT = 0.05  # m, its side walls
+TRAY_HEIGHT = 0.045  # m, its side walls
 TRAVEL = 0.19  # m, the joint's upper limit (the tray's back stays inside)
 STANDOFF = 0.035  # m, the bar's centre in front of the drawer front (room for a fingertip behind it)
-BAR_HALF = (0.008, 0.008, 0.025)  # m, the vertical handle bar
+BAR_HALF = (0.008, 0.008, 0.013)  # m, the vertical handle bar
 POST_HALF = (STANDOFF / 2, 0.006, 0.005)  # m, the two posts that hold it
 DRAWER_MASS = 0.4  # kg, front panel and tray together
 FRICTION_FORCE = 3.0  # N, the slide's friction: holds a drawer still, far below what the grip holds
 SHUT = 0.01  # m, a drawer no further out than this counts as shut
 # The hand's tilt from pointing straight down, towards the chest. More tilt bends the wrist to its limit
 # on the pulls near the robot; less brings the back of the hand and the wrist onto the bar above. The arm's
-# straight-line moves at this tilt also break down (the solver flips between arm postures) for handles
-# about 17-22 cm high, so the handles keep out of that band (which is why the chest stands on a plinth).
+# straight-line moves at this tilt also break down (the solver's arm posture drifts into a joint limit)
+# for handles about 14-22 cm high when the chest stands nearer than ~0.74 m (the pulls end near the base);
+# from 0.74 m out, every handle height from 6 to 26 cm works (IK dry runs, measured).
 PITCH = np.radians(30)
 FINGER_HALF_WIDTH, FINGER_TIP = 0.012, 0.008  # m, a finger's half width and its tip past the grasp frame
 APPROACH = 0.06  # m, the hand starts this far in front of the bar, then moves in along the axis

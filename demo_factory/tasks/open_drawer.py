@@ -18,9 +18,9 @@ class OpenDrawer(DrawerTask):
     name = "open_drawer"
     description = "Grasp the handle of the instructed drawer (bottom, middle or top) and pull the drawer open."
     categories = ("motion planner",)
-    # Near enough that the hand still reaches the bar with a bent wrist: from farther, the wrist straightens
-    # on the way in and the bottom drawer's pull ends at the wrist's limit.
-    front_region = ((0.65, 0.69), (-0.12, 0.12))
+    # Far enough that the pull towards the base never drives the arm into a joint limit (nearer, the middle
+    # and bottom pulls fail), near and central enough that both shoulder cameras see the top handle.
+    front_region = ((0.74, 0.77), (-0.06, 0.06))
 
     def synthetic_instructions(self, variation: Variation) -> list[str]:
         d = variation.words[0]

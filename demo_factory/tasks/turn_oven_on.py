@@ -12,14 +12,15 @@ from demo_factory.tasks.objects import Part, add_body, free_of_robot
 from demo_factory.tasks.variations import Variation
 
 # The oven, in its own frame: the front faces -x (the robot, at zero yaw), the origin is the body's centre.
-OVEN_HALF = (0.14, 0.2, 0.16)  # m: 28 x 40 x 32 cm
-DOOR_HALF = (0.006, 0.17, 0.1)  # the glass door on the lower front
-DOOR_CENTRE_Z = -0.045  # m above the oven's centre
-HANDLE_RADIUS, HANDLE_LENGTH = 0.008, 0.26  # the door's bar handle, along y
-HANDLE_Z, HANDLE_OUT = 0.035, 0.03  # m above the centre; m in front of the door
-PANEL_HALF = (0.004, 0.19, 0.045)  # the control panel strip above the door
-KNOB_Z = 0.11  # m above the oven's centre (the knobs' axes): 0.27 m above the table
-KNOB_YS = (0.12, 0.0, -0.12)  # left to right as seen from the front (left is +y at zero yaw)
+# Small and low enough that the shoulder cameras see its front: their view ends about 30 cm above the table there.
+OVEN_HALF = (0.12, 0.15, 0.13)  # m: 24 x 30 x 26 cm
+DOOR_HALF = (0.006, 0.13, 0.08)  # the glass door on the lower front
+DOOR_CENTRE_Z = -0.035  # m above the oven's centre
+HANDLE_RADIUS, HANDLE_LENGTH = 0.008, 0.2  # the door's bar handle, along y
+HANDLE_Z, HANDLE_OUT = 0.025, 0.03  # m above the centre; m in front of the door
+PANEL_HALF = (0.004, 0.14, 0.035)  # the control panel strip above the door
+KNOB_Z = 0.085  # m above the oven's centre (the knobs' axes): 0.215 m above the table
+KNOB_YS = (0.09, 0.0, -0.09)  # left to right as seen from the front (left is +y at zero yaw)
 POWER_KNOB = 0  # the left-most knob switches the oven on (RLBench's)
 DISC_RADIUS, DISC_LENGTH = 0.022, 0.012  # the knob's round base, flush on the panel
 GRIP_HALF = (0.015, 0.006, 0.021)  # the knob's grip bar: depth, thickness, height (vertical when off)
@@ -32,8 +33,12 @@ TURNED_ON = 1.5  # rad: RLBench's JointCondition on the oven knob
 UNTOUCHED = np.radians(10)
 TURN = np.radians(115)  # the hand's turn: past TURNED_ON with room for the fingers' give
 APPROACH = 0.08  # m: the hand lines up this far in front of the grip bar before going in
-CENTRE_REGION = ((0.66, 0.72), (-0.22, 0.1))  # the oven's centre (x, y)
-YAW_RANGE = np.radians(45)  # the oven turns by up to this about z (RLBench: ±45°)
+CENTRE_REGION = ((0.6, 0.68), (0.02, 0.12))  # the oven's centre (x, y)
+# rad: the oven's turn about z. RLBench turns it by up to ±45°, but both shoulder cameras must see the power
+# knob's face, and the knob must face away from the arm (MIN_SKEW): a front turned towards one camera turns
+# away from the other, and these angles (the front turned a little to +y, the oven left of centre) keep the
+# panel at least ~7° off edge-on for both while the knob faces 24° or more away from the arm.
+YAW_RANGE = (np.radians(-20), np.radians(-5))
 # The arm cannot hold the hand level and pointing straight away from its base at knob height (the wrist
 # would have to flip past its limits), so a scene whose power knob faces the base within this is drawn again.
 MIN_SKEW = np.radians(24)
@@ -108,7 +113,7 @@ class TurnOvenOn(PlacementTask):
         (x0, x1), (y0, y1) = CENTRE_REGION
         while True:
             self.centre = np.array([rng.uniform(x0, x1), rng.uniform(y0, y1), OVEN_HALF[2]])
-            self.yaw = float(rng.uniform(-YAW_RANGE, YAW_RANGE))
+            self.yaw = float(rng.uniform(*YAW_RANGE))
             self.rotation = Rotation.from_euler("z", self.yaw)
             knob = self.knob_point(POWER_KNOB, GRIP_OUT)
             if abs(np.arctan2(knob[1], knob[0]) - self.yaw) >= MIN_SKEW:
@@ -146,8 +151,9 @@ class TurnOvenOn(PlacementTask):
         return self._turn_knob(POWER_KNOB, TURN)
 
     def wrong_keyframes(self, world) -> list[KeyframeTarget]:
-        """Turn the knob next to the power knob instead."""
-        return self._turn_knob(POWER_KNOB + 1, TURN)
+        """Turn the power knob only half as far. (Not the knob next to it: turned to face both shoulder
+        cameras, the oven leaves the middle knob facing the arm too squarely for a level hand.)"""
+        return self._turn_knob(POWER_KNOB, TURN / 2)
 
     def success(self, world) -> bool:
         others = [i for i in range(len(self.knobs)) if i != POWER_KNOB]
