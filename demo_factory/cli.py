@@ -47,8 +47,10 @@ def cmd_tasks(args) -> int:
     print("\nvariation ids and splits:")
     for name in TASKS:
         print(f"  {name.ljust(widths[0])}  {get_task(name).variation_scheme}")
+    print("\nsuites (`generate --suite NAME`):")
+    width = max(map(len, SUITES))
     for suite, members in SUITES.items():
-        print(f"\nsuite {suite}: {', '.join(members)}  ({SUITE_DESCRIPTIONS[suite]})")
+        print(f"  {suite.ljust(width)}  {SUITE_DESCRIPTIONS[suite]}: {', '.join(members)}")
     return 0
 
 

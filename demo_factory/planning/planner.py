@@ -100,7 +100,7 @@ class CollisionChecker:
         if self.grasped is not None:
             body = self.grasped[0]
             for contact in p.getContactPoints(bodyA=body, physicsClientId=self.client):
-                if contact[2] != self.robot and contact[8] < self.margin:
+                if contact[2] != self.robot and contact[2] not in self.ignore and contact[8] < self.margin:
                     return True
         return self._self_collision()
 
@@ -172,14 +172,16 @@ class JointPlanner:
             checker = CollisionChecker(world, self.margin, ignore_bodies, grasped)
             return [checker.valid(q) for q in configurations]
 
-    def _straight_line(self, world, start, goal, grasped, ignore_bodies):
-        """``("exact", [start, goal])`` where the straight joint line is free, else ``(None, None)``:
-        checked here, with the world saved before and restored after, bit for bit."""
-        straight = [np.array(start, dtype=float), np.array(goal, dtype=float)]
+    def path_free(self, world, path, grasped=None, ignore_bodies=()) -> bool:
+        """Whether a joint path is collision-free (``ignore_bodies`` aside), checked densely here, with the world
+        saved before and restored after, bit for bit."""
         with _restored(world):
-            if CollisionChecker(world, self.margin, ignore_bodies, grasped).path_valid(straight):
-                return "exact", straight
-        return None, None
+            return CollisionChecker(world, self.margin, ignore_bodies, grasped).path_valid(path)
+
+    def _straight_line(self, world, start, goal, grasped, ignore_bodies):
+        """``("exact", [start, goal])`` where the straight joint line is free, else ``(None, None)``."""
+        straight = [np.array(start, dtype=float), np.array(goal, dtype=float)]
+        return ("exact", straight) if self.path_free(world, straight, grasped, ignore_bodies) else (None, None)
 
     def _attempt_in_child(self, world, start, goal, seed, grasped, ignore_bodies):
         outcome = _in_child(lambda: self._solve(world, start, goal, seed, grasped, ignore_bodies))

@@ -26,7 +26,7 @@ CARTESIAN_STEP = 0.01  # metres between IK waypoints on a straight line
 CARTESIAN_TURN_STEP = np.radians(3)  # radians between IK waypoints when the hand turns
 MAX_JOINT_JUMP = 0.25  # rad between consecutive straight-line IK solutions (else: not a straight move)
 SETTLE_STEPS = 120
-CONTACT_MOVE_MAX = 0.15  # metres: a predicted move that starts or ends in contact goes straight
+PUSH_MOVE_MAX = 0.25  # metres: a predicted move this short whose straight line only movable objects block goes straight
 GRIPPER_STEPS = (24, 144)  # at least / at most this many steps to open or close
 
 
@@ -61,11 +61,14 @@ class KeyframeExecutor:
         return outcome
 
     def execute_predicted(self, pose, gripper_open: float, transition: int) -> TransitionOutcome:
-        """Execute a predicted keyframe as in the HiveFormer paper: plan to the pose, then grip.
+        """Execute a predicted keyframe as in the HiveFormer paper's RLBench: a straight line where it can, else
+        a planned path, then grip.
 
-        The pose is reached with the seeded OMPL planner. A move whose start or goal touches the
-        scene on purpose (pressing, grasping, placing, lifting off) cannot be collision-free; if it
-        is short it follows a straight line instead, as the expert's own contact moves do.
+        The move goes straight (as the expert's own contact moves do) where its start or goal touches the scene
+        on purpose (pressing, grasping, placing, lifting off, pulling out: the planner needs free ends), where the
+        straight line is free, or, when short, where only movable objects (loose ones, drawers) block it: the
+        move is meant to push or drag them. Otherwise the seeded OMPL planner finds the path. (RLBench's planning
+        action mode also tries the straight line first, and checks no collisions.)
         """
         pose = np.asarray(pose, dtype=float).copy()
         pose[3:] /= np.linalg.norm(pose[3:]) or 1.0
@@ -77,9 +80,21 @@ class KeyframeExecutor:
             goal = self.kinematics.inverse(pose, seed=start)
             if goal is None:
                 return TransitionOutcome(False, "unreachable")
-            free = all(self.planner.states_valid(self.world, [start, goal], self._grasped_relative()))
-            motion = "cartesian" if not free and position_error <= CONTACT_MOVE_MAX else "planned"
+            grasped = self._grasped_relative()
+            touches = not all(self.planner.states_valid(self.world, [start, goal], grasped))
+            motion = "cartesian" if touches or self._straight_is_clear(pose, grasped, position_error) else "planned"
         return self.execute(KeyframeTarget(tuple(pose), float(gripper_open >= 0.5), motion), transition)
+
+    def _straight_is_clear(self, pose: np.ndarray, grasped, distance: float) -> bool:
+        """A straight move to ``pose`` exists and is free, or (within PUSH_MOVE_MAX) blocked by movable bodies only."""
+        line = self._line(pose)
+        if line is None:
+            return False
+        if self.planner.path_free(self.world, line, grasped):
+            return True
+        held = grasped[0] if grasped is not None else None
+        movable = [body for body in self.world.obstacle_bodies() if body != held and _movable(self.world.client, body)]
+        return distance <= PUSH_MOVE_MAX and bool(movable) and self.planner.path_free(self.world, line, grasped, movable)
 
     # -- motions --------------------------------------------------------------------------
     def _planned(self, pose: np.ndarray, transition: int) -> TransitionOutcome:
@@ -97,20 +112,28 @@ class KeyframeExecutor:
         return TransitionOutcome(True, None, plan)
 
     def _cartesian(self, pose: np.ndarray) -> TransitionOutcome:
+        waypoints = self._line(pose)
+        if waypoints is None:
+            return TransitionOutcome(False, "cartesian")
+        distance, rotation = pose_error(self.world.gripper_pose(), pose)
+        seconds = max(distance / CARTESIAN_SPEED, rotation / CARTESIAN_TURN_SPEED)
+        self._follow(waypoints, speed=None, segment_seconds=max(seconds / (len(waypoints) - 1), TIME_STEP))
+        return TransitionOutcome(True)
+
+    def _line(self, pose: np.ndarray) -> list[np.ndarray] | None:
+        """The joint waypoints of a straight move of the grasp frame to ``pose`` (from the current joints), or None
+        where inverse kinematics fails or jumps on the way."""
         start_pose = self.world.gripper_pose()
         distance, rotation = pose_error(start_pose, pose)
         # A waypoint every CARTESIAN_STEP of travel and every CARTESIAN_TURN_STEP of turning (a wrist turn in place).
         n = max(1, int(np.ceil(distance / CARTESIAN_STEP)), int(np.ceil(rotation / CARTESIAN_TURN_STEP)))
-        q = self.world.joint_positions()
-        waypoints = [q]
+        waypoints = [self.world.joint_positions()]
         for waypoint_pose in slerp_poses(start_pose, pose, n):
             q_next = self.kinematics.inverse(waypoint_pose, seed=waypoints[-1])
             if q_next is None or np.max(np.abs(q_next - waypoints[-1])) > MAX_JOINT_JUMP:
-                return TransitionOutcome(False, "cartesian")
+                return None
             waypoints.append(q_next)
-        seconds = max(distance / CARTESIAN_SPEED, rotation / CARTESIAN_TURN_SPEED)
-        self._follow(waypoints, speed=None, segment_seconds=max(seconds / n, TIME_STEP))
-        return TransitionOutcome(True)
+        return waypoints
 
     def _follow(self, waypoints, speed: float | None, segment_seconds: float | None = None) -> None:
         """Track a joint path with the position controllers, then let the arm settle on its end."""
@@ -159,3 +182,11 @@ class KeyframeExecutor:
         inv_pos, inv_orn = p.invertTransform(grasp[:3].tolist(), grasp[3:].tolist())
         rel_pos, rel_orn = p.multiplyTransforms(inv_pos, inv_orn, obj_pos, obj_orn)
         return body, rel_pos, rel_orn
+
+
+def _movable(client: int, body: int) -> bool:
+    """A body that can move: a loose one (its base has mass) or one with a moving joint (a drawer, a lid, a knob)."""
+    if p.getDynamicsInfo(body, -1, physicsClientId=client)[0] > 0:
+        return True
+    return any(p.getJointInfo(body, joint, physicsClientId=client)[2] != p.JOINT_FIXED
+               for joint in range(p.getNumJoints(body, physicsClientId=client)))
