@@ -240,7 +240,7 @@ def test_holding_still_scores_zero_within_the_time_limit(dense_push_buttons, tmp
                       "--episodes", "1", "--max-seconds", "2", "--out", str(out))
     assert result.returncode == 0, result.stderr[-3000:]
     row = json.loads((out / "episodes.jsonl").read_text())
-    assert not row["success"] and row["failure_reason"] == "step_limit" and row["steps"] == 40
+    assert not row["success"] and row["failure_reason"] == "step limit" and row["steps"] == 40
 
 
 def test_bad_eval_action_space_is_one_line_and_exit_2(tmp_path):

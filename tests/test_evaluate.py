@@ -43,7 +43,7 @@ def test_current_pose_policy_scores_zero_and_stops_at_the_step_limit():
     env.close()
     assert summarise(records)["success_rate"] == 0.0
     for record in records:
-        assert record["failure_reason"] == "step_limit"
+        assert record["failure_reason"] == "step limit" and record["failure_subgoal"] is None
         assert record["steps"] == record["step_limit"] > 2
 
 

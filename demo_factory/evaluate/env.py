@@ -13,6 +13,13 @@ check.
   the current joint positions to the target over the tick, as the expert's own moves are tracked.
 
 Both observe the scene exactly as the recorder does for a dataset frame.
+
+Failure reasons: every failed episode gets exactly one ``info["failure_reason"]`` (so the counts add up to
+the failures), decided when it ends: the task's own (``Task.failure``: "wrong button pressed", "press too
+shallow", "grasp missed", "cube dropped", ...) when it reports one, else the execution's (a keyframe that
+could not be reached: "unreachable pose", "planning failed", "straight-line move failed"), else "step limit".
+``info["failure_subgoal"]`` (the 1-based instructed sub-goal where it went wrong, or None) and
+``info["failure_detail"]`` (a sentence) come with the task's reason.
 """
 
 from __future__ import annotations
@@ -46,6 +53,15 @@ EVAL_ACTION_SPACES = (KEYFRAME, *ACTION_SPACES)
 DEFAULT_DENSE_SECONDS = 60.0  # a dense episode's time limit when no dataset tells the experts' durations
 SUCCESS_CHECK_STEPS = 60  # physics steps of rest before each success check ("stable for a moment")
 EVAL_SEED_TAG = 0xE7A1  # keeps evaluation seeds apart from generation seeds (different entropy)
+
+
+# The executor's reasons (``TransitionOutcome.reason``) and the step limit, in words.
+EXECUTION_REASONS = {
+    "unreachable": "unreachable pose",  # no inverse-kinematics solution for the predicted pose
+    "planning": "planning failed",  # OMPL found no collision-free path to it
+    "cartesian": "straight-line move failed",  # a short contact move with no IK solution or a joint jump on the line
+}
+STEP_LIMIT = "step limit"
 
 
 def evaluation_seed(base_seed: int, task: str, split: str, index: int) -> int:
@@ -130,8 +146,19 @@ class _TaskEnv(gym.Env):
     def close(self):
         self._close_world()
 
-    def _info(self, success: bool, reason: str | None) -> dict:
-        return {"is_success": success, "failure_reason": reason or "", "steps": self.steps}
+    def _info(self, success: bool, ended: bool = False, execution_reason: str | None = None) -> dict:
+        """The step's info; an episode that ``ended`` without success gets its failure reason (module docstring)."""
+        reason, subgoal, detail = "", None, ""
+        if ended and not success:
+            failure = self.sim_task.failure(self.world)
+            if failure is not None:
+                reason, subgoal, detail = failure.reason, failure.subgoal, failure.detail
+            elif execution_reason is not None:
+                reason = EXECUTION_REASONS.get(execution_reason, execution_reason)
+            else:
+                reason = STEP_LIMIT
+        return {"is_success": success, "failure_reason": reason, "failure_subgoal": subgoal,
+                "failure_detail": detail, "steps": self.steps}
 
     def _close_world(self):
         if self.world is not None:
@@ -157,7 +184,7 @@ class KeyframeEnv(_TaskEnv):
         self.executor = KeyframeExecutor(world, self.kinematics, self.planner, self.episode.seed,
                                          self.sim_task.graspable_bodies())
         self.frame = observe(world, 0, is_keyframe=True, is_dense=False)
-        return gym_observation(self.frame), self._info(False, None)
+        return gym_observation(self.frame), self._info(False)
 
     def step(self, action):
         action = np.asarray(action, dtype=np.float64).reshape(-1)
@@ -171,10 +198,9 @@ class KeyframeEnv(_TaskEnv):
         self.frame = observe(self.world, self.steps, is_keyframe=True, is_dense=False)
         terminated = success or reason is not None
         truncated = not terminated and self.steps >= self.step_limit
-        if truncated:
-            reason = "step_limit"
         self.last_plan = outcome.plan
-        return gym_observation(self.frame), float(success), terminated, truncated, self._info(success, reason)
+        info = self._info(success, terminated or truncated, reason)
+        return gym_observation(self.frame), float(success), terminated, truncated, info
 
 
 def control_period(fps: float) -> int:
@@ -214,7 +240,7 @@ class DenseEnv(_TaskEnv):
         self.success_steps = 0
         self.unreachable_ticks = 0
         self.frame = observe(self.world, 0, is_keyframe=False, is_dense=True)
-        return gym_observation(self.frame), self._info(False, None)
+        return gym_observation(self.frame), self._info(False)
 
     def joint_target(self, action: np.ndarray) -> np.ndarray | None:
         """The arm joint target of an action (None: an ``ee`` pose that inverse kinematics cannot reach)."""
@@ -245,11 +271,11 @@ class DenseEnv(_TaskEnv):
         success = self.success_steps >= SUCCESS_CHECK_STEPS
         self.frame = observe(world, 0, is_keyframe=False, is_dense=True)
         truncated = not success and self.steps >= self.step_limit
-        reason = "step_limit" if truncated else None
-        return gym_observation(self.frame), float(success), success, truncated, self._info(success, reason)
+        return gym_observation(self.frame), float(success), success, truncated, self._info(success, truncated)
 
-    def _info(self, success: bool, reason: str | None) -> dict:
-        return {**super()._info(success, reason), "unreachable_ticks": getattr(self, "unreachable_ticks", 0)}
+    def _info(self, success: bool, ended: bool = False, execution_reason: str | None = None) -> dict:
+        return {**super()._info(success, ended, execution_reason),
+                "unreachable_ticks": getattr(self, "unreachable_ticks", 0)}
 
 
 def make_env(task: str, action_space: str = KEYFRAME, fps: float = DEFAULT_CONTROL_FPS,

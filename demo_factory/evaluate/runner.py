@@ -74,6 +74,8 @@ def evaluate_episode(env: KeyframeEnv, policy, episode: EvalEpisode, record_path
         **asdict(episode),
         "success": bool(info["is_success"]),
         "failure_reason": info["failure_reason"] or None,
+        "failure_subgoal": info.get("failure_subgoal"),
+        "failure_detail": info.get("failure_detail") or None,
         "steps": env.steps,
         "step_limit": env.step_limit,
         **({"action_space": env.action_space_name, "fps": env.fps, "seconds": round(env.steps / env.fps, 3),
@@ -101,13 +103,20 @@ def _rollout_writer(env: KeyframeEnv, episode: EvalEpisode, path: Path) -> Episo
 
 def summarise(records: list[dict]) -> dict:
     """Success rate, episodes, mean steps (keyframes or control ticks) and failure reasons, overall and
-    per variation."""
+    per variation. Every failed episode has exactly one reason, so ``failure_reasons`` adds up to the failures
+    (most frequent first); ``failure_subgoals`` splits the task's reasons by the instructed sub-goal (1-based)
+    where they happened."""
     def block(rows):
+        subgoals = defaultdict(Counter)
+        for r in rows:
+            if not r["success"] and r.get("failure_subgoal") is not None:
+                subgoals[r["failure_reason"]][str(r["failure_subgoal"])] += 1
         return {
             "success_rate": float(np.mean([r["success"] for r in rows])) if rows else 0.0,
             "episodes": len(rows),
             "mean_steps": float(np.mean([r["steps"] for r in rows])) if rows else 0.0,
-            "failure_reasons": dict(Counter(r["failure_reason"] for r in rows if not r["success"])),
+            "failure_reasons": dict(Counter(r["failure_reason"] for r in rows if not r["success"]).most_common()),
+            "failure_subgoals": {reason: dict(sorted(counts.items())) for reason, counts in subgoals.items()},
         }
 
     by_variation = defaultdict(list)
@@ -133,9 +142,25 @@ def write_results(out: Path, policy_name: str, task: str, results: dict[str, dic
     episodes = ", ".join(f"{s}: {results[s]['episodes']}" for s in splits)
     (out / "results.md").write_text(
         f"# Closed-loop success rate (%) — {task}\n\n{header}{row}\nEpisodes per split: {episodes}.\n"
-        "Paper figures: HiveFormer (CoRL 2022), Table 3 (seen = train variations).\n"
+        "Paper figures: HiveFormer (CoRL 2022), Table 3 (seen = train variations).\n" + failure_table(results)
     )
     _bar_chart(out / "results.png", policy_name, task, results)
+
+
+def failure_table(results: dict[str, dict]) -> str:
+    """The failed episodes per split by reason (rows: reasons, most frequent first), or "" without failures."""
+    splits = list(results)
+    totals = Counter()
+    for s in splits:
+        totals.update(results[s]["failure_reasons"])
+    if not totals:
+        return ""
+    header = "| failure reason | " + " | ".join(splits) + " |\n|---|" + "---:|" * len(splits) + "\n"
+    rows = "".join(f"| {reason} | " + " | ".join(str(results[s]["failure_reasons"].get(reason, 0)) for s in splits)
+                   + " |\n" for reason, _ in totals.most_common())
+    failed = "| **failed episodes** | " + " | ".join(
+        str(sum(results[s]["failure_reasons"].values())) for s in splits) + " |\n"
+    return f"\n## Failed episodes by reason\n\n{header}{rows}{failed}"
 
 
 def _bar_chart(path: Path, policy_name: str, task: str, results: dict[str, dict]) -> None:

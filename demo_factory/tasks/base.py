@@ -33,6 +33,21 @@ class KeyframeTarget:
     motion: str
 
 
+@dataclass(frozen=True)
+class Failure:
+    """What went wrong in a failed episode, in the task's own words (``Task.failure``).
+
+    ``reason`` is a short fixed phrase from the task's small vocabulary ("wrong button pressed", "press too
+    shallow", "grasp missed", "cube dropped", ...), counted as is in the evaluation's results; ``subgoal`` the
+    1-based index of the instructed sub-goal (the k-th button, the k-th cube of the instruction) where it went
+    wrong, None when the task has no sub-goals; ``detail`` one human sentence ("pressed navy where teal was
+    next").
+    """
+
+    reason: str
+    subgoal: int | None = None
+    detail: str = ""
+
 
 class Task(ABC):
     """A tabletop task with enumerated variations. Subclasses register themselves in ``registry``.
@@ -189,6 +204,12 @@ class Task(ABC):
     @abstractmethod
     def success(self, world) -> bool:
         """Whether the instructed goal holds in the current simulator state."""
+
+    def failure(self, world) -> Failure | None:
+        """What went wrong, asked when an episode ends without success (from the current state and what
+        ``on_step`` tracked); None when nothing more specific than the execution's own reason applies (a
+        move that could not be planned, the step limit). By default None."""
+        return None
 
     def scene_facts(self) -> dict:
         """Task-specific facts worth recording with the episode (object colours, positions)."""

@@ -7,7 +7,7 @@ import pybullet as p
 
 from demo_factory.sim.world import TOP_DOWN
 from demo_factory.tasks import motions
-from demo_factory.tasks.base import KeyframeTarget, Task, spread_positions
+from demo_factory.tasks.base import Failure, KeyframeTarget, Task, spread_positions
 from demo_factory.tasks.palette import PUSH_BUTTON_COLOURS, rgba
 from demo_factory.tasks.variations import PaperNumbering, Variation
 
@@ -19,6 +19,7 @@ TRAVEL = 0.012  # how far the cap can be pushed in
 # the expert pushes 9 mm, so a policy's press may land up to 6 mm high.
 PRESSED_AT = -0.003
 PRESS_DEPTH = 0.009  # how far the expert pushes the cap
+TOUCHED_AT = 0.001  # cap travel (m) from which a press that did not count is "too shallow"
 APPROACH_HEIGHT = 0.06  # above the cap, before pressing and after
 WORKSPACE = ((0.38, 0.62), (-0.22, 0.22))  # x and y ranges of button centres
 MIN_SPACING = 0.12
@@ -67,6 +68,7 @@ class PushButtons(Task):
         self.positions = {colour: pos for colour, pos in zip(colours, positions)}
         self.pressed_order: list[str] = []
         self._down = {colour: False for colour in colours}
+        self.deepest = {colour: 0.0 for colour in colours}  # each cap's deepest travel (m, >= 0)
 
     def cap_top(self, colour: str) -> np.ndarray:
         x, y = self.positions[colour]
@@ -88,13 +90,35 @@ class PushButtons(Task):
 
     def on_step(self, world) -> None:
         for colour, body in self.buttons.items():
-            down = p.getJointState(body, 0, physicsClientId=world.client)[0] < PRESSED_AT
+            position = p.getJointState(body, 0, physicsClientId=world.client)[0]
+            down = position < PRESSED_AT
             if down and not self._down[colour]:
                 self.pressed_order.append(colour)
             self._down[colour] = down
+            self.deepest[colour] = max(self.deepest[colour], -position)
 
     def success(self, world) -> bool:
         return tuple(self.pressed_order) == self.instructed.words
+
+    def failure(self, world) -> Failure | None:
+        """"wrong button pressed" at the first press that leaves the instructed order; else "press too shallow"
+        when the next instructed cap moved at least 1 mm without reaching the 3 mm of a press; else None."""
+        words = self.instructed.words
+        for k, colour in enumerate(self.pressed_order):
+            if k >= len(words):
+                return Failure("wrong button pressed", k + 1,
+                               f"pressed {colour} after the instructed {len(words)} button(s)")
+            if colour != words[k]:
+                again = " again" if colour in self.pressed_order[:k] else ""
+                return Failure("wrong button pressed", k + 1, f"pressed {colour}{again} where {words[k]} was next")
+        k = len(self.pressed_order)
+        if k < len(words):
+            travel = self.deepest[words[k]]
+            if TOUCHED_AT <= travel < -PRESSED_AT:
+                return Failure("press too shallow", k + 1,
+                               f"the {words[k]} cap moved {1000 * travel:.1f} mm, a press counts from "
+                               f"{-1000 * PRESSED_AT:.0f} mm")
+        return None
 
     def goal_points(self, world, variation: Variation) -> list[np.ndarray]:
         return [self.cap_top(colour) for colour in variation.words]

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from demo_factory.tasks import motions
-from demo_factory.tasks.base import KeyframeTarget
+from demo_factory.tasks.base import Failure, KeyframeTarget
 from demo_factory.tasks.objects import at_rest, free_of_robot
 from demo_factory.tasks.safe import GRIP_FROM_REAR, HAND_CLEARANCE, NOTE_HALF, SafeTask, add_note, note_rear_grip
 from demo_factory.tasks.variations import Variation
@@ -51,6 +51,14 @@ class PutMoneyInSafe(SafeTask):
         position, _ = world.body_pose(self.note)
         return (self.safe.inside(position) and self.safe.shelf_of(world, self.note) == self.shelf
                 and at_rest(world, self.note) and free_of_robot(world, self.note))
+
+    def failure(self, world) -> Failure | None:
+        """"wrong shelf" when the money lies inside the safe on another shelf, else None."""
+        position, _ = world.body_pose(self.note)
+        shelf = self.safe.shelf_of(world, self.note) if self.safe.inside(position) else None
+        if shelf is not None and shelf != self.shelf:
+            return Failure("wrong shelf", 1, f"the money is on the {shelf} shelf where {self.shelf} was instructed")
+        return None
 
     def scene_facts(self) -> dict:
         return {"safe_front": round(float(self.safe.front), 6), "safe_y": round(float(self.safe.y), 6),

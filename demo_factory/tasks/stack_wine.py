@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from demo_factory.tasks import motions
-from demo_factory.tasks.base import KeyframeTarget, Task
+from demo_factory.tasks.base import Failure, KeyframeTarget, Task
 from demo_factory.tasks.objects import Part, add_body, resting_on, upright
 from demo_factory.tasks.variations import Variation
 
@@ -91,6 +91,14 @@ class StackWine(Task):
         position, _ = world.body_pose(self.bottle)
         return (float(np.linalg.norm(position[:2] - self.slot_centre(self.slot))) < TOLERANCE
                 and upright(world, self.bottle) and resting_on(world, self.bottle, self.rack))
+
+    def failure(self, world) -> Failure | None:
+        """"wrong slot" when the bottle stands in (over) another slot of the rack, else None."""
+        position, _ = world.body_pose(self.bottle)
+        for slot in SLOTS:
+            if slot != self.slot and float(np.linalg.norm(position[:2] - self.slot_centre(slot))) < TOLERANCE:
+                return Failure("wrong slot", 1, f"the bottle is in the {slot} slot where {self.slot} was instructed")
+        return None
 
     def scene_facts(self) -> dict:
         return {"rack": [round(float(v), 6) for v in self.rack_centre],

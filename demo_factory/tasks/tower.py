@@ -3,10 +3,12 @@
 from __future__ import annotations
 
 import numpy as np
+import pybullet as p
 from scipy.spatial.transform import Rotation
 
+from demo_factory.sim.world import FINGER_JOINTS
 from demo_factory.tasks import motions
-from demo_factory.tasks.base import KeyframeTarget, Task, spread_positions
+from demo_factory.tasks.base import Failure, KeyframeTarget, Task, spread_positions
 from demo_factory.tasks.palette import TOWER_COLOURS, rgba
 from demo_factory.tasks.variations import PaperNumbering, Variation
 
@@ -19,6 +21,10 @@ ABOVE = 0.10  # approach height above a grasp or place pose
 PLACE_CLEARANCE = 0.004  # release a cube this far above its resting height
 POSITION_TOLERANCE = 0.02  # xy distance from the target spot that still counts as on it
 HEIGHT_TOLERANCE = 0.01
+LIFTED = 0.02  # a held cube this far above where it started counts as lifted (failure reasons)
+NEAR_GRASP = 0.06  # a gripper closing this near a cube's centre was grasping at it
+TRACK_EVERY = 4  # physics steps between the checks of which cubes are held or in place (1/60 s)
+NEAR_TARGET = CUBE  # xy distance from the target spot of a cube that missed it narrowly (or stands there wrongly)
 
 
 class Tower(Task):
@@ -62,6 +68,15 @@ class Tower(Task):
             orientation = Rotation.from_euler("z", yaw).as_quat()
             self.cubes[colour] = world.add_box((half, half, half), (*xy, half), rgba(colour), mass=CUBE_MASS,
                                                orientation=orientation, friction=1.0)
+        # What ``failure`` tells from (tracked by ``on_step``): the cubes the gripper closed near, each cube's
+        # highest lift while held (m above the table), where it was let go, the instructed cubes that stood at
+        # their level freely.
+        self.closed_near: set[str] = set()
+        self.lifted = {colour: 0.0 for colour in self.cubes}
+        self.was_in_place: set[str] = set()
+        self.released: dict[str, float] = {}  # xy distance from the target where each cube was last let go
+        self._held: set[str] = set()
+        self._gripper = world.gripper_command
 
     def grasp_yaw(self, colour: str) -> float:
         """The cube's yaw folded into [-45°, 45°): any face pair can be grasped."""
@@ -87,14 +102,88 @@ class Tower(Task):
     def graspable_bodies(self) -> list[int]:
         return list(self.cubes.values())
 
+    def in_place(self, world, colour: str, level: int) -> bool:
+        """The cube stands on the target spot at ``level`` (0 = on the table)."""
+        position, _ = world.body_pose(self.cubes[colour])
+        return (np.linalg.norm(position[:2] - self.target) <= POSITION_TOLERANCE
+                and abs(position[2] - (level + 0.5) * CUBE) <= HEIGHT_TOLERANCE)
+
     def success(self, world) -> bool:
+        return all(self.in_place(world, colour, level) for level, colour in enumerate(self.instructed.words))
+
+    def on_step(self, world) -> None:
+        client, robot = world.client, world.robot
+        command = world.gripper_command
+        if command < self._gripper:  # the gripper starts closing: at which cube?
+            hand = world.gripper_pose()[:3]
+            distances = {c: float(np.linalg.norm(world.body_pose(b)[0] - hand)) for c, b in self.cubes.items()}
+            nearest = min(distances, key=distances.get)
+            if distances[nearest] <= NEAR_GRASP:
+                self.closed_near.add(nearest)
+        self._gripper = command
+        if world.step_count % TRACK_EVERY:
+            return
+        for colour, body in self.cubes.items():
+            held = bool(p.getContactPoints(robot, body, physicsClientId=client)) and all(
+                p.getContactPoints(robot, body, link, physicsClientId=client) for link in FINGER_JOINTS)
+            if held:
+                self.lifted[colour] = max(self.lifted[colour], world.body_pose(body)[0][2] - CUBE / 2)
+            elif colour in self._held:  # let go (on purpose or not): where?
+                self.released[colour] = float(np.linalg.norm(world.body_pose(body)[0][:2] - self.target))
+            (self._held.add if held else self._held.discard)(colour)
         for level, colour in enumerate(self.instructed.words):
-            position, _ = world.body_pose(self.cubes[colour])
-            if np.linalg.norm(position[:2] - self.target) > POSITION_TOLERANCE:
-                return False
-            if abs(position[2] - (level + 0.5) * CUBE) > HEIGHT_TOLERANCE:
-                return False
-        return True
+            if colour not in self.was_in_place and self.in_place(world, colour, level) \
+                    and not p.getContactPoints(robot, self.cubes[colour], physicsClientId=client):
+                self.was_in_place.add(colour)
+
+    def failure(self, world) -> Failure | None:
+        """What went wrong at the lowest level whose instructed cube is not in place, first match of:
+
+        - "tower knocked over": the level's cube stood in place, and no longer does (nor do the cubes above it
+          that also stood in place);
+        - "cube placed off target": the level's cube was carried and let go over the target (within a cube's width
+          of it) but does not stand at its level;
+        - "cube dropped": it was lifted and let go elsewhere (or slipped out of the fingers);
+        - "grasp missed": the gripper closed at it but never lifted it;
+        - "wrong cube placed": another cube (a distractor, or a later level's) stands at this level;
+        - else None (e.g. the level's cube is still held, or was never touched: the step limit).
+        """
+        words = self.instructed.words
+        level = next((k for k, colour in enumerate(words) if not self.in_place(world, colour, k)), None)
+        if level is None:
+            return None
+        colour, subgoal = words[level], level + 1
+        body = self.cubes[colour]
+        fallen = [c for k, c in enumerate(words) if c in self.was_in_place and not self.in_place(world, c, k)]
+        if colour in fallen:
+            cubes = " and ".join(f"{c} (level {words.index(c) + 1})" for c in fallen)
+            return Failure("tower knocked over", subgoal,
+                           f"the {cubes} cube{'s' if len(fallen) > 1 else ''} stood in place, then "
+                           f"{'were' if len(fallen) > 1 else 'was'} moved out of it")
+        position, _ = world.body_pose(body)
+        off = float(np.linalg.norm(position[:2] - self.target))
+        if self.lifted[colour] >= LIFTED and not world.held_object([body]):
+            released = self.released.get(colour, off)
+            if released <= NEAR_TARGET:
+                below = round(100 * (position[2] - (level + 0.5) * CUBE), 1) + 0.0  # cm, never "-0.0"
+                return Failure("cube placed off target", subgoal,
+                               f"the {colour} cube was let go {100 * released:.1f} cm from the target spot and lies "
+                               f"{100 * off:.1f} cm from it, {below:+.1f} cm from its level (counts within "
+                               f"{100 * POSITION_TOLERANCE:.0f} cm and {100 * HEIGHT_TOLERANCE:.0f} cm)")
+            return Failure("cube dropped", subgoal,
+                           f"the {colour} cube was lifted {100 * self.lifted[colour]:.0f} cm and let go "
+                           f"{100 * released:.0f} cm from the target")
+        if colour in self.closed_near and self.lifted[colour] < LIFTED:
+            return Failure("grasp missed", subgoal, f"the gripper closed at the {colour} cube but never lifted it")
+        for other, other_body in self.cubes.items():
+            other_position, _ = world.body_pose(other_body)
+            if other != colour and np.linalg.norm(other_position[:2] - self.target) <= NEAR_TARGET \
+                    and abs(other_position[2] - (level + 0.5) * CUBE) <= HEIGHT_TOLERANCE:
+                where = "on the target" if level == 0 else f"at level {subgoal} of the tower"
+                which = f"the cube of level {words.index(other) + 1}" if other in words else "not in the instruction"
+                return Failure("wrong cube placed", subgoal,
+                               f"the {other} cube ({which}) stands {where} where {colour} belongs")
+        return None
 
     goal_sketch = "stack"
 

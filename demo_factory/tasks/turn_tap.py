@@ -6,7 +6,7 @@ import numpy as np
 import pybullet as p
 
 from demo_factory.tasks import motions
-from demo_factory.tasks.base import KeyframeTarget, Task
+from demo_factory.tasks.base import Failure, KeyframeTarget, Task
 from demo_factory.tasks.objects import free_of_robot
 from demo_factory.tasks.variations import Variation
 
@@ -94,6 +94,19 @@ class TurnTap(Task):
         return (abs(self.handle_angle(world, self.target)) >= TURNED
                 and abs(self.handle_angle(world, other)) <= UNTOUCHED
                 and free_of_robot(world, self.taps[self.target]))
+
+    def failure(self, world) -> Failure | None:
+        """"wrong tap turned" (the other handle moved past 10°), "tap turned too little" (the instructed one moved
+        10-70°), else None."""
+        other = next(t for t in TAPS if t != self.target)
+        angle, other_angle = (np.degrees(abs(self.handle_angle(world, t))) for t in (self.target, other))
+        if other_angle > np.degrees(UNTOUCHED):
+            return Failure("wrong tap turned", 1, f"the {other} tap turned {other_angle:.0f}° where {self.target} was "
+                                                  f"instructed")
+        if np.degrees(UNTOUCHED) < angle < np.degrees(TURNED):
+            return Failure("tap turned too little", 1, f"the {self.target} tap turned {angle:.0f}°, a turn counts from "
+                                                       f"{np.degrees(TURNED):.0f}°")
+        return None
 
     def scene_facts(self) -> dict:
         return {"taps": {t: [round(float(v), 6) for v in self.world.body_pose(b)[0]] for t, b in self.taps.items()}}
