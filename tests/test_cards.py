@@ -70,9 +70,12 @@ def test_committed_standard_cards(name):
     assert not [p for p in folder.iterdir() if p.name not in ("README.md", "contact_sheet.png")]  # no data
 
 
-def test_committed_ten_task_card_covers_the_suite():
+@pytest.mark.parametrize("suite", ["ten_tasks", "categories"])
+def test_committed_suite_cards_cover_the_suite_with_each_tasks_categories(suite):
     from demo_factory.suites import SUITES
+    from demo_factory.tasks import get_task
 
-    card = (CARDS / "ten_tasks" / "README.md").read_text()
+    card = (CARDS / suite / "README.md").read_text()
     check_card(card)
-    assert all(task in card for task in SUITES["ten_tasks"])
+    for name in SUITES[suite]:
+        assert f"| `{name}` | {', '.join(get_task(name).categories)} |" in card

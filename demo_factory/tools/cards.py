@@ -3,10 +3,11 @@
 Each standard dataset is generated small (a few episodes per split at the default image size) in a
 temporary folder, with the same relative paths a user would type (``data/raw/<name>``,
 ``data/lerobot/<name>``), converted, and only its card and contact sheet are kept:
-``dataset_cards/<name>/README.md`` and ``contact_sheet.png``. The ten-task suite is one multi-task
-dataset (``generate --suite ten_tasks``), so it has one card like the others.
+``dataset_cards/<name>/README.md`` and ``contact_sheet.png``. The ten-task suite and the categories
+suite (one task per category of the HiveFormer paper) are each one multi-task dataset
+(``generate --suite NAME``), so each has one card like the others.
 
-    python -m demo_factory.tools.cards --out dataset_cards [--datasets push_buttons tower ten_tasks]   (or `make cards`)
+    python -m demo_factory.tools.cards --out dataset_cards [--datasets push_buttons tower ten_tasks categories]   (or `make cards`)
 """
 
 from __future__ import annotations
@@ -25,7 +26,7 @@ from demo_factory.generate import GenerationJob, run_job
 from demo_factory.suites import SUITES, suite_tasks
 
 OWNER = "demo-factory"  # the Hub namespace the standard datasets' repo ids name
-STANDARD = ("push_buttons", "tower", "ten_tasks")
+STANDARD = ("push_buttons", "tower", "ten_tasks", "categories")
 MAX_SHEET_BYTES = 100_000
 
 
@@ -40,8 +41,8 @@ def _inside(folder: Path):
 
 
 def make_card(name: str, out: Path, train_episodes: int, test_episodes: int, seed: int = 0) -> Path:
-    """Generate, convert and keep the card of standard dataset ``name`` (a task, or the ten-task
-    suite as one multi-task dataset): ``out/README.md`` + contact sheet."""
+    """Generate, convert and keep the card of standard dataset ``name`` (a task, or a suite as one
+    multi-task dataset): ``out/README.md`` + contact sheet."""
     with tempfile.TemporaryDirectory(prefix=f"cards-{name}-") as tmp, _inside(Path(tmp)):
         raw, converted = Path("data/raw") / name, Path("data/lerobot") / name
         for split, episodes in (("train", train_episodes), ("test", test_episodes)):
