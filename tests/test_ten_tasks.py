@@ -5,6 +5,7 @@ import json
 import pytest
 
 from demo_factory.cli import main
+from demo_factory.collect.pictures import PICTURE_SIZE, pictures_for, render_variation
 from demo_factory.evaluate.env import KeyframeEnv, default_episodes
 from demo_factory.evaluate.policies import ExpertPolicy
 from demo_factory.evaluate.runner import evaluate_episode
@@ -119,6 +120,14 @@ def test_the_experts_keyframes_succeed_when_evaluated_as_predictions(name):
     finally:
         env.close()
     assert [r["failure_reason"] for r in records] == [None, None] and all(r["success"] for r in records)
+
+
+@pytest.mark.parametrize("name", ONE_GOAL)
+def test_the_instruction_collection_pictures_render(name):
+    task = get_task(name)
+    pictures = render_variation(name, task.split_variations("test")[0].id)
+    assert set(pictures) == {picture.name for picture in pictures_for(task)} >= {"left_shoulder", "right_shoulder"}
+    assert all(image.shape == (PICTURE_SIZE, PICTURE_SIZE, 3) and image.std() > 0 for image in pictures.values())
 
 
 def test_tasks_command_lists_category_and_variation_count(capsys):

@@ -55,6 +55,8 @@ def pictures_for(task: Task) -> tuple[Picture, ...]:
     scene = tuple(Picture(camera, f"scene, {camera.replace('_', ' ')} camera") for camera in SCENE_CAMERAS)
     if task.goal_sketch == "stack":
         return (*scene, Picture("goal_render", "when done, close up"), Picture("goal", "when done"))
+    if task.variation_kind != "colour":  # a drawer, a shelf, a placement: the scene's badges show the goal
+        return scene
     return (*scene, Picture("goal", "order"))
 
 
@@ -157,10 +159,11 @@ def render_variation(task_name: str, variation_id: int) -> dict[str, np.ndarray]
                 mark_target(image, camera, place)
             mark_order(image, camera, points)
             pictures[name] = image
-        if task.goal_sketch == "stack":
+        names = {picture.name for picture in pictures_for(task)}
+        if "goal_render" in names:
             pictures["goal_render"] = _render_goal(world, task, variation)
             pictures["goal"] = draw_tower(variation.words)
-        else:
+        elif "goal" in names:
             pictures["goal"] = draw_button_order(variation.words)
     finally:
         world.close()
