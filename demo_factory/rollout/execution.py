@@ -49,13 +49,14 @@ class KeyframeExecutor:
     episode_seed: int
     graspable: list[int] = field(default_factory=list)
 
-    def execute(self, target: KeyframeTarget, transition: int) -> TransitionOutcome:
-        """Reach ``target`` (planned, Cartesian or in place), then apply its gripper command."""
+    def execute(self, target: KeyframeTarget, transition: int, line=None) -> TransitionOutcome:
+        """Reach ``target`` (planned, Cartesian or in place), then apply its gripper command; ``line``: the
+        Cartesian move's joint waypoints where already solved."""
         outcome = TransitionOutcome(ok=True)
         if target.motion == "planned":
             outcome = self._planned(np.asarray(target.pose), transition)
         elif target.motion == "cartesian":
-            outcome = self._cartesian(np.asarray(target.pose))
+            outcome = self._cartesian(np.asarray(target.pose), line)
         if outcome.ok and target.gripper_open != self.world.gripper_command:
             self._actuate_gripper(target.gripper_open)
         return outcome
@@ -73,6 +74,7 @@ class KeyframeExecutor:
         pose = np.asarray(pose, dtype=float).copy()
         pose[3:] /= np.linalg.norm(pose[3:]) or 1.0
         position_error, rotation_error = pose_error(self.world.gripper_pose(), pose)
+        line = None
         if position_error < 1e-3 and rotation_error < 1e-2:
             motion = "gripper"
         else:
@@ -82,19 +84,21 @@ class KeyframeExecutor:
                 return TransitionOutcome(False, "unreachable")
             grasped = self._grasped_relative()
             touches = not all(self.planner.states_valid(self.world, [start, goal], grasped))
-            motion = "cartesian" if touches or self._straight_is_clear(pose, grasped, position_error) else "planned"
-        return self.execute(KeyframeTarget(tuple(pose), float(gripper_open >= 0.5), motion), transition)
+            if not touches:
+                line = self._clear_line(pose, grasped, position_error)
+            motion = "cartesian" if touches or line is not None else "planned"
+        return self.execute(KeyframeTarget(tuple(pose), float(gripper_open >= 0.5), motion), transition, line)
 
-    def _straight_is_clear(self, pose: np.ndarray, grasped, distance: float) -> bool:
-        """A straight move to ``pose`` exists and is free, or (within PUSH_MOVE_MAX) blocked by movable bodies only."""
+    def _clear_line(self, pose: np.ndarray, grasped, distance: float) -> list[np.ndarray] | None:
+        """The joint waypoints of a straight move to ``pose`` where it exists and is free, or (within
+        PUSH_MOVE_MAX) blocked by movable bodies only; else None."""
         line = self._line(pose)
-        if line is None:
-            return False
-        if self.planner.path_free(self.world, line, grasped):
-            return True
+        if line is None or self.planner.path_free(self.world, line, grasped):
+            return line
         held = grasped[0] if grasped is not None else None
         movable = [body for body in self.world.obstacle_bodies() if body != held and _movable(self.world.client, body)]
-        return distance <= PUSH_MOVE_MAX and bool(movable) and self.planner.path_free(self.world, line, grasped, movable)
+        pushes = distance <= PUSH_MOVE_MAX and bool(movable) and self.planner.path_free(self.world, line, grasped, movable)
+        return line if pushes else None
 
     # -- motions --------------------------------------------------------------------------
     def _planned(self, pose: np.ndarray, transition: int) -> TransitionOutcome:
@@ -111,8 +115,8 @@ class KeyframeExecutor:
         self._follow(plan.path, JOINT_SPEED)
         return TransitionOutcome(True, None, plan)
 
-    def _cartesian(self, pose: np.ndarray) -> TransitionOutcome:
-        waypoints = self._line(pose)
+    def _cartesian(self, pose: np.ndarray, waypoints=None) -> TransitionOutcome:
+        waypoints = waypoints or self._line(pose)
         if waypoints is None:
             return TransitionOutcome(False, "cartesian")
         distance, rotation = pose_error(self.world.gripper_pose(), pose)

@@ -3,12 +3,11 @@
 from __future__ import annotations
 
 import numpy as np
-import pybullet as p
 from scipy.spatial.transform import Rotation
 
-from demo_factory.sim.world import FINGER_JOINTS
 from demo_factory.tasks import motions
 from demo_factory.tasks.base import Failure, KeyframeTarget, Task, spread_positions
+from demo_factory.tasks.objects import free_of_robot, held
 from demo_factory.tasks.palette import TOWER_COLOURS, rgba
 from demo_factory.tasks.variations import PaperNumbering, Variation
 
@@ -112,7 +111,6 @@ class Tower(Task):
         return all(self.in_place(world, colour, level) for level, colour in enumerate(self.instructed.words))
 
     def on_step(self, world) -> None:
-        client, robot = world.client, world.robot
         command = world.gripper_command
         if command < self._gripper:  # the gripper starts closing: at which cube?
             hand = world.gripper_pose()[:3]
@@ -124,16 +122,15 @@ class Tower(Task):
         if world.step_count % TRACK_EVERY:
             return
         for colour, body in self.cubes.items():
-            held = bool(p.getContactPoints(robot, body, physicsClientId=client)) and all(
-                p.getContactPoints(robot, body, link, physicsClientId=client) for link in FINGER_JOINTS)
-            if held:
+            is_held = held(world, body)
+            if is_held:
                 self.lifted[colour] = max(self.lifted[colour], world.body_pose(body)[0][2] - CUBE / 2)
             elif colour in self._held:  # let go (on purpose or not): where?
                 self.released[colour] = float(np.linalg.norm(world.body_pose(body)[0][:2] - self.target))
-            (self._held.add if held else self._held.discard)(colour)
+            (self._held.add if is_held else self._held.discard)(colour)
         for level, colour in enumerate(self.instructed.words):
             if colour not in self.was_in_place and self.in_place(world, colour, level) \
-                    and not p.getContactPoints(robot, self.cubes[colour], physicsClientId=client):
+                    and free_of_robot(world, self.cubes[colour]):
                 self.was_in_place.add(colour)
 
     def failure(self, world) -> Failure | None:
