@@ -1,5 +1,7 @@
 # Two commands on a fresh machine: `make demo` and `make test`. Both install first.
-PYTHON ?= python3
+# LeRobot 0.6 needs Python 3.12: the first python3.12 that runs (PATH, then pyenv's versions).
+PYTHON ?= $(shell for p in python3.12 $(HOME)/.pyenv/versions/3.12*/bin/python3.12 /usr/local/bin/python3.12; do \
+	  $$p -c '' 2>/dev/null && { echo $$p; exit; }; done; echo python3.12)
 VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
@@ -7,13 +9,22 @@ PLUGIN := policies/lerobot_policy_hiveformer
 DEMO_RAW := data/raw/push_buttons
 DEMO_DATASET := data/lerobot/push_buttons
 
+# LeRobot 0.6's decoder (torchcodec) loads FFmpeg's shared libraries; without them every LeRobot
+# command prints a long warning and falls back to pyav. Debian 12's FFmpeg 5, installed when absent.
+FFMPEG_LIBS := libavutil57 libavcodec59 libavformat59 libavfilter8 libavdevice59 libswscale6 libswresample4
+SUDO := $(shell [ "$$(id -u)" = 0 ] || echo sudo -n)
+
 .PHONY: install demo test bench reference reference-act cards clean
 
 install: $(STAMP)
 
 # Re-installs only when a distribution's declaration changes.
 $(STAMP): pyproject.toml $(PLUGIN)/pyproject.toml
-	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
+	ldconfig -p | grep -Eq 'libavutil\.so\.(5[6-9]|6[0-9])' || \
+	  ( $(SUDO) apt-get update -qq && $(SUDO) env DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends $(FFMPEG_LIBS) ) || \
+	  echo "FFmpeg's libraries could not be installed: LeRobot will warn that torchcodec cannot load and read with pyav"
+	$(BIN)/python -c 'import sys; sys.exit(sys.version_info[:2] != (3, 12))' 2>/dev/null || \
+	  { rm -rf $(VENV) && $(PYTHON) -m venv $(VENV); }
 	$(BIN)/python -m pip install --quiet --upgrade pip
 	$(BIN)/python -m pip install --quiet -e ".[test,ray]" -e "$(PLUGIN)[minilm]"
 	touch $(STAMP)
@@ -29,7 +40,6 @@ demo: install
 
 # The browser test of `collect-instructions` needs Debian's chromium and its driver: installed here
 # when absent; where that is impossible the test is skipped with a message.
-SUDO := $(shell [ "$$(id -u)" = 0 ] || echo sudo -n)
 
 test: install
 	command -v chromium >/dev/null && command -v chromedriver >/dev/null || \

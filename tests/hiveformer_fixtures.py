@@ -30,7 +30,11 @@ def dataset_features(image_size: int = IMAGE_SIZE, cameras=CAMERAS) -> dict:
             "names": ["height", "width", "channels"],
         }
         features[f"observation.images.{camera}"] = dict(image)
-        features[f"observation.depth.{camera}"] = dict(image)
+        features[f"observation.depth.{camera}"] = {
+            **image,
+            "shape": (image_size, image_size, 1),
+            "info": {"is_depth_map": True, "depth_unit": "mm"},
+        }
         features[f"observation.calibration.{camera}"] = {"dtype": "float32", "shape": (20,), "names": None}
     features["observation.state"] = {"dtype": "float32", "shape": (15,), "names": STATE_NAMES}
     features["action"] = {"dtype": "float32", "shape": (8,), "names": ACTION_NAMES}
@@ -60,10 +64,9 @@ def table_depth_m(intrinsics: np.ndarray, world_from_camera: np.ndarray, size: i
     return np.where((depth > 0) & (depth < 2.0), depth, 0.0)
 
 
-def pack_depth_mm(depth_m: np.ndarray) -> np.ndarray:
-    """(H, W) metres -> (H, W, 3) uint8: R = mm // 256, G = mm % 256, B = 0."""
-    mm = np.clip(np.round(depth_m * 1000.0), 0, 65535).astype(np.int64)
-    return np.stack([mm // 256, mm % 256, np.zeros_like(mm)], axis=-1).astype(np.uint8)
+def depth_mm(depth_m: np.ndarray) -> np.ndarray:
+    """(H, W) metres -> (H, W, 1) uint16 millimetres, LeRobot's native depth."""
+    return np.clip(np.round(depth_m * 1000.0), 0, 65535).astype(np.uint16)[..., None]
 
 
 def random_pose(rng: np.random.Generator) -> np.ndarray:
@@ -109,7 +112,7 @@ def write_tiny_dataset(
                 world_from_camera = camera_pose(camera, poses[step][:3])
                 rgb = rng.integers(0, 256, size=(image_size, image_size, 3), dtype=np.uint8)
                 frame[f"observation.images.{camera}"] = rgb
-                frame[f"observation.depth.{camera}"] = pack_depth_mm(
+                frame[f"observation.depth.{camera}"] = depth_mm(
                     table_depth_m(intrinsics, world_from_camera, image_size)
                 )
                 frame[f"observation.calibration.{camera}"] = np.concatenate(
@@ -140,7 +143,7 @@ def tiny_config(root: Path, **overrides):
     """A small HiveFormer config on the dataset at `root`, with features read from it."""
     from lerobot.configs.types import FeatureType
     from lerobot.datasets.lerobot_dataset import LeRobotDatasetMetadata
-    from lerobot.datasets.utils import dataset_to_policy_features
+    from lerobot.utils.feature_utils import dataset_to_policy_features
     from lerobot_policy_hiveformer import HiveformerConfig
 
     meta = LeRobotDatasetMetadata("local/tiny", root=root)

@@ -13,7 +13,8 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from demo_factory.convert import DATASET_SPLITS, unpack_depth, world_points
+from demo_factory.convert.converter import read_dataset_provenance
+from demo_factory.convert import DATASET_SPLITS, world_points
 from demo_factory.cli import main
 from demo_factory.convert.usage import act_train_args
 from demo_factory.instructions import colour_words, corrupt_instruction
@@ -119,7 +120,7 @@ def _load(out: Path, split: str):
 
 def _episodes(dataset):
     """Dataset frames grouped by episode, with the recording each came from."""
-    provenance = dataset.meta.info["demo_factory"]["episodes"]
+    provenance = read_dataset_provenance(dataset.root)[1]["episodes"]
     items = [dataset[i] for i in range(len(dataset))]
     return [([it for it in items if it["episode_index"].item() == p["episode_index"]], p) for p in provenance]
 
@@ -129,9 +130,11 @@ def test_layout_every_split_loads_offline(converted):
     for split in DATASET_SPLITS:
         dataset = _load(converted, split)
         assert dataset.num_episodes > 0 and dataset.fps == 10
-        assert dataset.meta.info["cameras"] == CAMERAS
-        assert dataset.meta.info["depth_encoding"]["unit"] == "mm"
-        assert dataset.meta.info["demo_factory"]["split"] == split
+        provenance = read_dataset_provenance(dataset.root)[1]
+        assert provenance["cameras"] == CAMERAS and provenance["split"] == split
+        for camera in CAMERAS:  # LeRobot's native depth
+            assert dataset.meta.features[f"observation.depth.{camera}"]["info"] == {"is_depth_map": True, "depth_unit": "mm"}
+        assert dataset.meta.depth_keys == [f"observation.depth.{camera}" for camera in CAMERAS]
         assert not (converted / split / "images").exists()
     assert not list(converted.parent.glob(".push_buttons.*"))  # no staging folder left
 
@@ -164,7 +167,11 @@ def test_world_points_from_dataset_equal_those_from_the_recording(converted, rec
             z = np.where(recorded.depth > 0, recorded.depth, np.nan)
             homogeneous = np.stack([(u - cx) * z / fx, (v - cy) * z / fy, z, np.ones_like(z)], axis=-1)
             expected = (homogeneous @ recorded.extrinsics.T)[..., :3]
-            depth = unpack_depth(item[f"observation.depth.{camera}"].numpy())
+            depth_mm = item[f"observation.depth.{camera}"].numpy()
+            assert depth_mm.shape == (1, *SIZE) and depth_mm.dtype == np.float32
+            # every pixel: the recording's millimetres (the simulator's depth rounded to whole mm), exactly
+            assert np.array_equal(depth_mm[0], np.rint(recorded.depth.astype(np.float64) * 1000))
+            depth = depth_mm[0] / 1000.0
             rebuilt = world_points(depth, item[f"observation.calibration.{camera}"].numpy())
             assert np.array_equal(np.isnan(rebuilt), np.isnan(expected))
             assert np.nanmax(np.abs(rebuilt - expected)) < 1e-5
@@ -172,7 +179,7 @@ def test_world_points_from_dataset_equal_those_from_the_recording(converted, rec
 
 def test_splits_keep_seen_and_unseen_variations_apart(converted):
     test_ids = {v.id for v in get_task("push_buttons").split_variations("test")}
-    seen = {split: _load(converted, split).meta.info["demo_factory"]["episodes"] for split in DATASET_SPLITS}
+    seen = {split: read_dataset_provenance(_load(converted, split).root)[1]["episodes"] for split in DATASET_SPLITS}
     for split in ("train", "val"):
         assert seen[split] and all(e["variation_id"] not in test_ids for e in seen[split])
     for split in ("test_unseen_synthetic", "test_unseen_corrupted", "test_unseen_human"):
@@ -193,7 +200,7 @@ def test_corrupted_split_has_no_seen_colour_word(converted):
 def test_human_split_uses_every_sentence_of_the_file(converted, human_file):
     human = _load(converted, "test_unseen_human")
     sentences = [json.loads(line)["instruction"] for line in human_file.read_text().splitlines()]
-    used = [e["instruction"] for e in human.meta.info["demo_factory"]["episodes"]]
+    used = [e["instruction"] for e in read_dataset_provenance(human.root)[1]["episodes"]]
     # variation a: 2 episodes, 3 rows → 3 episodes; variation b: 1 episode, 1 row
     assert sorted(used) == sorted(sentences)
     assert {human[i]["task"] for i in range(len(human))} == set(sentences)

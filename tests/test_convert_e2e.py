@@ -6,6 +6,7 @@ os.environ.setdefault("HF_HUB_OFFLINE", "1")
 
 import pytest
 
+from demo_factory.convert.converter import read_dataset_provenance
 from demo_factory.cli import main
 from demo_factory.convert import DATASET_SPLITS
 from demo_factory.instructions import colour_words, load_human_instructions, shipped_human_instructions
@@ -28,7 +29,7 @@ def test_generated_episodes_convert_to_loadable_splits(task, train, test, tmp_pa
     human_rows = {r.instruction for r in load_human_instructions(shipped_human_instructions(task))}
     for split in DATASET_SPLITS:
         dataset = LeRobotDataset(f"me/{task}_{split}", root=out / split)
-        episodes = dataset.meta.info["demo_factory"]["episodes"]
+        episodes = read_dataset_provenance(dataset.root)[1]["episodes"]
         assert dataset.num_frames == sum(len(recordings[e["recording"]].keyframes) for e in episodes)
         assert {recordings[e["recording"]].info.split for e in episodes} == {"train" if split in ("train", "val") else "test"}
         if split == "test_unseen_corrupted":

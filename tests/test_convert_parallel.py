@@ -102,7 +102,9 @@ def test_parallel_batches_give_the_dataset_of_one_writer(recordings, tmp_path, w
         assert _files(a) == _files(b), split
         info_a, info_b = (json.loads((r / "meta" / "info.json").read_text()) for r in (a, b))
         assert info_a == info_b
-        assert info_a["demo_factory"]["episodes"][-1]["episode_index"] == info_a["total_episodes"] - 1
+        provenance_a, provenance_b = (json.loads((r / "meta" / "demo_factory.json").read_text()) for r in (a, b))
+        assert provenance_a == provenance_b
+        assert provenance_a["episodes"][-1]["episode_index"] == info_a["total_episodes"] - 1
         _assert_close(json.loads((a / "meta" / "stats.json").read_text()),
                       json.loads((b / "meta" / "stats.json").read_text()), split)
         for relative in _files(a):

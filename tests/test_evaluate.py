@@ -90,8 +90,8 @@ def test_expert_on_the_splits_of_a_converted_dataset(converted_push_buttons, tmp
     assert all(s["success_rate"] == 1.0 and s["episodes"] == 3 for s in results["splits"].values())
     corrupted = [json.loads(line) for line in (out / "episodes.jsonl").read_text().splitlines()
                  if '"test_unseen_corrupted"' in line]
-    dataset_tasks = json.loads((converted_push_buttons / "test_unseen_corrupted" / "meta" / "info.json").read_text())
-    assert {e["instruction"] for e in corrupted} <= {e["instruction"] for e in dataset_tasks["demo_factory"]["episodes"]}
+    dataset_tasks = json.loads((converted_push_buttons / "test_unseen_corrupted" / "meta" / "demo_factory.json").read_text())
+    assert {e["instruction"] for e in corrupted} <= {e["instruction"] for e in dataset_tasks["episodes"]}
     assert "| HiveFormer (paper) | 86.3 | 85.6 |" in (out / "results.md").read_text()
 
 

@@ -39,8 +39,8 @@ def test_instruction_file_yields_episodes_for_exactly_its_variations_and_every_r
     assert set(human.meta.tasks.index) == {r.instruction for r in load_human_instructions(instructions)}
     assert human.meta.total_episodes == len(rows)  # every row is used (its variation's episode repeats)
     for split in ("test_unseen_synthetic", "test_unseen_corrupted"):
-        info = json.loads((out / split / "meta" / "info.json").read_text())
-        assert sorted(e["variation_id"] for e in info["demo_factory"]["episodes"]) == sorted(v.id for v in named)
+        info = json.loads((out / split / "meta" / "demo_factory.json").read_text())
+        assert sorted(e["variation_id"] for e in info["episodes"]) == sorted(v.id for v in named)
     card = (out / "README.md").read_text()
     assert "Named test variations" in card and all(str(v.id) in card for v in named[:4])
 
@@ -52,6 +52,6 @@ def test_a_named_tower_variation_generates_and_converts(tmp_path):
     assert main(["generate", "--task", "tower", "--variation", variation.name, "--episodes", "1",
                  "--image-size", "32", "--out", str(raw)]) == 0
     assert main(["convert", "--in", str(raw), "--out", str(out), "--repo-id", "me/tower_named", "--no-progress"]) == 0
-    info = json.loads((out / "test_unseen_synthetic" / "meta" / "info.json").read_text())
-    assert [e["variation_id"] for e in info["demo_factory"]["episodes"]] == [variation.id]
+    info = json.loads((out / "test_unseen_synthetic" / "meta" / "demo_factory.json").read_text())
+    assert [e["variation_id"] for e in info["episodes"]] == [variation.id]
     assert not (out / "train").exists()  # no train-variation episodes: the split is skipped, not written empty

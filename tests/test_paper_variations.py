@@ -148,7 +148,7 @@ def test_recordings_of_the_old_numbering_are_refused(tmp_path):
 
 
 def test_datasets_of_the_old_numbering_are_refused():
-    with pytest.raises(ConvertError, match="dataset format version 1 numbers variations the old way"):
+    with pytest.raises(ConvertError, match="dataset format version 1 is older"):
         check_dataset_provenance({"task": "push_buttons", "episodes": []}, "old/test_unseen_human")
     with pytest.raises(ConvertError, match="not a demo-factory dataset"):
         check_dataset_provenance(None, "x")
@@ -174,7 +174,7 @@ def test_generate_then_convert_gives_exactly_the_papers_sentences(tmp_path):
     assert main(["convert", "--in", str(raw), "--out", str(out), "--repo-id", "me/paper", "--no-progress"]) == 0
     human = LeRobotDataset("me/paper_test_unseen_human", root=out / "test_unseen_human")
     assert sorted(human.meta.tasks.index) == sorted(r["fields"]["instruction"] for r in subset)
-    info = json.loads((out / "test_unseen_human" / "meta" / "info.json").read_text())["demo_factory"]
+    info = json.loads((out / "test_unseen_human" / "meta" / "demo_factory.json").read_text())
     assert info["format_version"] == DATASET_FORMAT_VERSION
     assert sorted((e["variation_id"], e["instruction"], e["annotation_id"]) for e in info["episodes"]) == sorted(
         (r["fields"]["variation"], r["fields"]["instruction"], r["id"]) for r in subset)
@@ -199,9 +199,9 @@ def test_eval_and_publish_refuse_datasets_of_the_old_numbering(tmp_path, capsys)
 
     dataset = old_numbering_dataset(tmp_path / "old")
     assert main(["eval", "--expert", "--dataset", str(dataset), "--out", str(tmp_path / "eval")]) == 2
-    assert "numbers variations the old way" in capsys.readouterr().err
+    assert "dataset format version 1 is older" in capsys.readouterr().err
     assert not (tmp_path / "eval").exists()
-    with pytest.raises(PublishError, match="numbers variations the old way"):
+    with pytest.raises(PublishError, match="dataset format version 1 is older"):
         find_splits(dataset)
 
 

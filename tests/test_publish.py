@@ -15,6 +15,7 @@ import socket
 from pathlib import Path
 from types import SimpleNamespace
 
+import httpx
 import pytest
 import requests
 from huggingface_hub import DatasetCard
@@ -64,7 +65,7 @@ class FakeHub:
 
             def _repo(self, repo_id):
                 if repo_id not in hub.repos:
-                    raise RepositoryNotFoundError(f"{repo_id} not found")
+                    raise hub_error(RepositoryNotFoundError, f"{repo_id} not found")
                 return hub.repos[repo_id]
 
             def create_repo(self, repo_id, private=False, repo_type=None, exist_ok=False, **kwargs):
@@ -111,7 +112,7 @@ class FakeHub:
             def delete_tag(self, repo_id, tag, repo_type=None, **kwargs):
                 hub.calls.append(("delete_tag", repo_id, tag))
                 if self._repo(repo_id)["tags"].pop(tag, None) is None:
-                    raise RevisionNotFoundError(f"no tag {tag}")
+                    raise hub_error(RevisionNotFoundError, f"no tag {tag}")
 
             def create_tag(self, repo_id, tag, revision=None, repo_type=None, **kwargs):
                 hub.calls.append(("create_tag", repo_id, tag))
@@ -119,6 +120,11 @@ class FakeHub:
                 repo["tags"][tag] = repo["head"]
 
         return Api
+
+
+def hub_error(kind, message: str):
+    """A Hub error as huggingface_hub raises it (with the HTTP response it came from)."""
+    return kind(message, response=httpx.Response(404, request=httpx.Request("GET", "https://hub.test")))
 
 
 @pytest.fixture

@@ -33,9 +33,10 @@ def test_act_reference_trains_with_the_chunk_its_shortest_episode_holds(tmp_path
 
     meta = tmp_path / "train" / "meta"
     meta.mkdir(parents=True)
-    info = {"fps": 20, "cameras": ["wrist"], "features": {"observation.images.wrist": {"shape": [64, 64, 3]}},
-            "demo_factory": {"format_version": DATASET_FORMAT_VERSION, "episodes": [{"frames": 60}, {"frames": 31}]}}
+    info = {"fps": 20, "features": {"observation.images.wrist": {"shape": [64, 64, 3]}}}
     (meta / "info.json").write_text(json.dumps(info))
+    provenance = {"format_version": DATASET_FORMAT_VERSION, "cameras": ["wrist"], "episodes": [{"frames": 60}, {"frames": 31}]}
+    (meta / "demo_factory.json").write_text(json.dumps(provenance))
     command = act_train_command(tmp_path / "train", tmp_path / "out", steps=300, batch_size=8)
     assert command[0].endswith("lerobot-train") and "--policy.type=act" in command
     assert "--policy.chunk_size=31" in command and "--policy.n_action_steps=15" in command  # 2 s = 40 > 31

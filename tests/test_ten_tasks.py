@@ -165,9 +165,9 @@ def test_suite_generates_one_folder_per_task_and_converts_to_one_multi_task_data
     out = tmp_path / "dataset"
     assert main(["convert", "--in", str(raw), "--out", str(out), "--repo-id", "me/ten_tasks", "--val-ratio", "0",
                  "--no-progress"]) == 0
-    info = json.loads((out / "train" / "meta" / "info.json").read_text())
-    episodes = info["demo_factory"]["episodes"]
-    assert info["demo_factory"]["task"] == "ten_tasks" and sorted(e["task"] for e in episodes) == sorted(TEN)
+    info = json.loads((out / "train" / "meta" / "demo_factory.json").read_text())
+    episodes = info["episodes"]
+    assert info["task"] == "ten_tasks" and sorted(e["task"] for e in episodes) == sorted(TEN)
     import pandas as pd
 
     tasks = pd.read_parquet(out / "train" / "meta" / "tasks.parquet")

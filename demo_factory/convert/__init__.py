@@ -1,12 +1,12 @@
 """Conversion: MCAP episode recordings → LeRobot v3.0 datasets, one per split, with a dataset card.
 
-Owns the dataset layout (`features`: feature names, shapes, depth packing, actions), the split plan
+Owns the dataset layout (`features`: feature names, shapes, native depth, actions), the split plan
 (`splits`: train / val / unseen test splits and their instruction sources), the conversion run
 (`converter`: options, checks, survey, plan), the split writer (`writer`: LeRobot's writer in one process or
 in parallel batches merged with LeRobot's `aggregate_datasets`), the card (`card`) and the training
 commands that fit each export (`usage`). Reads ``.mcap`` recordings, the
 generation summaries beside them and human-instruction files; writes one LeRobot dataset folder per split
-(provenance in ``meta/info.json["demo_factory"]``, read back by `read_dataset_provenance`), ``README.md``
+(provenance in ``meta/demo_factory.json``, read back by `read_dataset_provenance`), ``README.md``
 and ``contact_sheet.png`` into the output folder, all at once (a staging folder renamed at the end).
 """
 
@@ -20,9 +20,9 @@ from demo_factory.convert.converter import (
 from demo_factory.convert.features import (
     ACTION_SPACES,
     dataset_features,
+    depth_mm,
     pack_depth,
     robot_action,
-    unpack_depth,
     world_points,
 )
 from demo_factory.convert.result import ConvertResult
@@ -38,9 +38,9 @@ __all__ = [
     "check_dataset_provenance",
     "convert",
     "dataset_features",
+    "depth_mm",
     "pack_depth",
     "robot_action",
     "split_repo_id",
-    "unpack_depth",
     "world_points",
 ]

@@ -114,8 +114,8 @@ def _feature_rows(cameras: list[str], image_size: tuple[int, int], action_space:
     rows = []
     for c in cameras:
         rows.append(f"| `observation.images.{c}` | image (PNG) | ({h}, {w}, 3) | RGB, uint8 |")
-        rows.append(f"| `observation.depth.{c}` | image (PNG) | ({h}, {w}, 3) | depth in mm packed R = mm // 256, G = mm % 256, B = 0 |")
-        rows.append(f"| `observation.calibration.{c}` | float32 | (20,) | fx, fy, cx, cy, world-from-camera 4×4 row-major (OpenCV axes) |")
+        rows.append(f"| `observation.depth.{c}` | depth image (16-bit PNG) | ({h}, {w}, 1) | LeRobot's native depth (`is_depth_map`, `depth_unit` mm): z-depth in whole millimetres, 0 = no hit; loads as float32 mm |")
+        rows.append(f"| `observation.calibration.{c}` | float32 | (20,) | fx, fy, cx, cy, world-from-camera 4×4 row-major (OpenCV axes); how to unproject: the feature's `info` |")
     rows += [
         f"| `observation.state` | float32 | (15,) | {', '.join(STATE_NAMES)} (gripper grasp frame, world = robot base frame, metres; open 1 / closed 0; joints in rad) |",
         action_row(action_space),
@@ -276,7 +276,7 @@ def render_card(result: ConvertResult, template: Path = TEMPLATE) -> str:
         "regenerate": "\n".join([
             *(g["command"] for g in result.generation_summaries if g.get("command")),
             *([] if result.generation_summaries else
-              ["# no generation_summary_*.json found: each episode's seed is in meta/info.json (demo_factory.episodes)"]),
+              ["# no generation_summary_*.json found: each episode's seed is in meta/demo_factory.json (episodes)"]),
             result.command,
         ]),
         "invalid_section": invalid,
@@ -313,8 +313,8 @@ def training_note(policy: str, cameras: list[str], image_size: tuple[int, int], 
                       "`pip install lerobot-doctor`) checks the split against that chunk.")
     return ("The `lerobot-train` line trains LeRobot's built-in ACT policy on the train split on a CPU, offline: no "
             "pretrained backbone download, no Hub push, no Weights & Biases, and ACT's inputs restricted to the "
-            f"{len(cameras)} RGB cameras ({height}×{width}) and the state (it would otherwise take the packed depth "
-            f"images for more cameras).{chunk_text}")
+            f"{len(cameras)} RGB cameras ({height}×{width}) and the state (it would otherwise take the depth images "
+            f"for more cameras).{chunk_text}")
 
 
 def eval_command(dataset: Path | str, task: str, policy: str = "act") -> str:

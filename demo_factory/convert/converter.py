@@ -23,7 +23,7 @@ from demo_factory.convert.features import ACTION_SPACES, DEFAULT_ACTION_SPACE, G
 from demo_factory.convert.card import write_card
 from demo_factory.convert.result import ConvertResult
 from demo_factory.convert.splits import SourceEpisode, SplitPlan, plan_splits, split_repo_id
-from demo_factory.convert.writer import DATASET_FORMAT_VERSION, Layout, write_split
+from demo_factory.convert.writer import DATASET_FORMAT_VERSION, PROVENANCE_FILE, Layout, write_split
 from demo_factory.errors import UsageError
 from demo_factory.generate.folder import SUMMARY_GLOB
 from demo_factory.instructions import HumanInstruction, load_human_instructions, shipped_human_instructions
@@ -277,13 +277,13 @@ def _load_human_rows(options: ConvertOptions, task: str) -> tuple[Path | None, l
 
 
 def check_dataset_provenance(provenance: dict | None, root: Path | str) -> dict:
-    """A converted split's ``meta/info.json["demo_factory"]``, refused (``ConvertError``, one line) when it
-    is missing or from a dataset format this demo-factory does not read (older variation numbering)."""
+    """A converted split's provenance (``meta/demo_factory.json``), refused (``ConvertError``, one line)
+    when it is missing or from a dataset format this demo-factory does not read."""
     if not provenance:
-        raise ConvertError(f"{root}: not a demo-factory dataset (no 'demo_factory' in meta/info.json)")
+        raise ConvertError(f"{root}: not a demo-factory dataset (no {PROVENANCE_FILE})")
     found = provenance.get("format_version", 1)
     if found != DATASET_FORMAT_VERSION:
-        why = ("numbers variations the old way (before the HiveFormer paper's ids); regenerate and convert it again"
+        why = ("is older (variation numbering or packed depth of LeRobot 0.4); convert its recordings again"
                if found < DATASET_FORMAT_VERSION else "is newer than this demo-factory reads; upgrade demo-factory")
         raise ConvertError(f"{root}: dataset format version {found} {why} (this demo-factory reads version "
                            f"{DATASET_FORMAT_VERSION})")
@@ -297,7 +297,12 @@ def read_dataset_provenance(split_root: Path | str) -> tuple[dict, dict]:
     if not info_path.is_file():
         raise ConvertError(f"{split_root}: not a converted split (no meta/info.json)")
     info = json.loads(info_path.read_text(encoding="utf-8"))
-    return info, check_dataset_provenance(info.get("demo_factory"), split_root)
+    provenance_path = Path(split_root) / PROVENANCE_FILE
+    if provenance_path.is_file():
+        provenance = json.loads(provenance_path.read_text(encoding="utf-8"))
+    else:  # datasets written for LeRobot 0.4 kept it in info.json
+        provenance = info.get("demo_factory")
+    return info, check_dataset_provenance(provenance, split_root)
 
 
 def plan_multi_task_splits(sources: list[SourceEpisode], tasks, val_ratio: float) -> dict[str, SplitPlan]:

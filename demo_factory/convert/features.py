@@ -2,11 +2,13 @@
 
 Per camera ``<cam>`` (the recording's cameras, e.g. left_shoulder / right_shoulder / wrist):
 - ``observation.images.<cam>``       image (H, W, 3) uint8 RGB, stored as lossless PNG.
-- ``observation.depth.<cam>``        image (H, W, 3) uint8: z-depth in whole millimetres packed as
-  R = mm // 256, G = mm % 256, B = 0 (0 = no hit). PNG keeps it exact; a 1-channel or float
-  feature would be rejected or read ~30× slower by LeRobot (see FACTS.md).
+- ``observation.depth.<cam>``        LeRobot's native depth image (H, W, 1): z-depth in whole
+  millimetres as a 16-bit PNG (lossless; 0 = no hit), flagged ``info: {is_depth_map: true,
+  depth_unit: mm}`` so LeRobot reads it back as (1, H, W) float32 millimetres, keeps image transforms
+  and ImageNet statistics off it, and its tools show it as depth.
 - ``observation.calibration.<cam>``  float32 (20,): fx, fy, cx, cy, then the 4×4 world-from-camera
-  transform (OpenCV axes) row-major. Per frame because the wrist camera moves.
+  transform (OpenCV axes) row-major. Per frame because the wrist camera moves. Its feature's ``info``
+  says how to rebuild the point cloud (``CALIBRATION_LAYOUT``).
 Robot and labels:
 - ``observation.state``  float32 (15,): gripper x, y, z, qx, qy, qz, qw, gripper_open, joint_0..joint_6.
 - ``action``             float32 (8,), by granularity and action space:
@@ -34,13 +36,8 @@ CALIBRATION_NAMES = ["fx", "fy", "cx", "cy", *(f"T_world_cam_{r}{c}" for r in ra
 STATE_SIZE = len(STATE_NAMES)  # 15: gripper pose, open, 7 joints
 ACTION_SIZE = len(ACTION_NAMES)  # 8: the next keyframe's pose and open (a dense joints action has 8 too)
 CALIBRATION_SIZE = len(CALIBRATION_NAMES)  # 20 per camera: intrinsics, then the 4x4 camera-to-world matrix
-DEPTH_ENCODING = {
-    "unit": "mm",
-    "channels": "R = mm // 256, G = mm % 256, B = 0",
-    "decode": "depth_m = (256 * R + G) / 1000; 0 = no hit",
-}
+DEPTH_INFO = {"is_depth_map": True, "depth_unit": "mm"}  # LeRobot 0.6's native depth flag and unit
 CALIBRATION_LAYOUT = {
-    "names": CALIBRATION_NAMES,
     "intrinsics": "fx, fy, cx, cy in pixels (pixel centres at integer coordinates)",
     "extrinsics": "4x4 world-from-camera, OpenCV axes (x right, y down, z forward), row-major",
     "unproject": "p_world = T @ [(u - cx) * z / fx, (v - cy) * z / fy, z, 1] for pixel (u=column, v=row)",
@@ -81,12 +78,14 @@ def dataset_features(cameras: list[str], image_size: tuple[int, int], action_spa
     """The ``features`` argument of ``LeRobotDataset.create`` for these cameras and (H, W); the action is
     the next keyframe (``action_space=None``) or a dense action space (``joints`` / ``ee``)."""
     height, width = image_size
-    image = {"dtype": "image", "shape": (height, width, 3), "names": ["height", "width", "channels"]}
+    names = ["height", "width", "channels"]
     features: dict[str, dict] = {}
     for camera in cameras:
-        features[image_key(camera)] = dict(image)
-        features[depth_key(camera)] = dict(image)
-        features[calibration_key(camera)] = {"dtype": "float32", "shape": (CALIBRATION_SIZE,), "names": CALIBRATION_NAMES}
+        features[image_key(camera)] = {"dtype": "image", "shape": (height, width, 3), "names": names}
+        features[depth_key(camera)] = {"dtype": "image", "shape": (height, width, 1), "names": names,
+                                       "info": dict(DEPTH_INFO)}
+        features[calibration_key(camera)] = {"dtype": "float32", "shape": (CALIBRATION_SIZE,), "names": CALIBRATION_NAMES,
+                                             "info": dict(CALIBRATION_LAYOUT)}
     features["observation.state"] = {"dtype": "float32", "shape": (STATE_SIZE,), "names": STATE_NAMES}
     features["action"] = {"dtype": "float32", "shape": (ACTION_SIZE,), "names": action_names(action_space)}
     features["variation_id"] = {"dtype": "int64", "shape": (1,), "names": None}
@@ -94,22 +93,19 @@ def dataset_features(cameras: list[str], image_size: tuple[int, int], action_spa
     return features
 
 
+def depth_mm(depth_m: np.ndarray) -> np.ndarray:
+    """(H, W) metres → (H, W, 1) uint16 whole millimetres (0 = no hit), as a dataset stores depth."""
+    return np.clip(np.rint(depth_m * 1000.0), 0, 65535).astype(np.uint16)[..., None]
+
+
 def pack_depth(depth_m: np.ndarray) -> np.ndarray:
-    """(H, W) metres → (H, W, 3) uint8 whole millimetres (R = mm // 256, G = mm % 256, B = 0)."""
-    mm = np.clip(np.rint(depth_m * 1000.0), 0, 65535).astype(np.uint16)
+    """(H, W) metres → (H, W, 3) uint8 millimetres, R = mm // 256, G = mm % 256, B = 0: how a gym
+    environment, whose images must be uint8, hands depth to ``lerobot-eval`` (the policy unpacks it)."""
+    mm = depth_mm(depth_m)[..., 0]
     packed = np.zeros((*mm.shape, 3), np.uint8)
     packed[..., 0] = mm >> 8
     packed[..., 1] = mm & 0xFF
     return packed
-
-
-def unpack_depth(packed: np.ndarray) -> np.ndarray:
-    """(H, W, 3) uint8 packed depth (or (3, H, W) floats in [0, 1] as LeRobot loads it) → (H, W) metres."""
-    packed = np.asarray(packed)
-    if packed.dtype != np.uint8:  # LeRobot's loader gives channel-first floats in [0, 1]
-        packed = np.rint(np.moveaxis(packed, 0, -1) * 255.0).astype(np.uint8)
-    mm = packed[..., 0].astype(np.float32) * 256.0 + packed[..., 1].astype(np.float32)
-    return mm / 1000.0
 
 
 def calibration_vector(camera: CameraObservation) -> np.ndarray:
@@ -182,14 +178,14 @@ def action_for(episode: Episode, keyframe_index: int) -> np.ndarray:
 
 
 def observation_item(frame: Frame, cameras: list[str]) -> dict[str, np.ndarray]:
-    """The ``observation.*`` features of one frame (images as (H, W, 3) uint8): what a dataset stores
-    and what a policy is shown during evaluation."""
+    """The ``observation.*`` features of one frame (images (H, W, 3) uint8, depth (H, W, 1) uint16
+    millimetres): what a dataset stores and what a policy is shown during evaluation."""
     robot = frame.robot
     item: dict[str, np.ndarray] = {}
     for camera in cameras:
         observation = frame.cameras[camera]
         item[image_key(camera)] = observation.rgb
-        item[depth_key(camera)] = pack_depth(observation.depth)
+        item[depth_key(camera)] = depth_mm(observation.depth)
         item[calibration_key(camera)] = calibration_vector(observation)
     item["observation.state"] = np.concatenate(
         [robot.gripper_pose, [robot.gripper_open], robot.joint_positions]

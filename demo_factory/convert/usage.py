@@ -22,7 +22,7 @@ def load_command(repo_id: str, root: Path) -> str:
 
 
 def act_input_features(cameras: list[str], image_size: tuple[int, int]) -> dict:
-    """ACT's inputs restricted to the RGB cameras and the state (packed depth is no image to ACT)."""
+    """ACT's inputs restricted to the RGB cameras and the state (depth is no RGB image to ACT)."""
     height, width = image_size
     features = {image_key(c): {"type": "VISUAL", "shape": [3, height, width]} for c in cameras}
     features["observation.state"] = {"type": "STATE", "shape": [STATE_SIZE]}

@@ -3,15 +3,16 @@
 One process writes a small split. A larger one is cut into consecutive batches of episodes, each
 written as its own LeRobot dataset by a forked process, merged in order with LeRobot's
 ``aggregate_datasets``; the statistics that merge gets wrong (of episode, frame and task numbers) are
-recomputed, so the result is the dataset one writer makes (``tests/test_convert_parallel.py``). RGB
-mean and std are computed exactly here (LeRobot 0.4.4's overflow: see ``ImageMoments``). Writing and
-merging run with ``lerobot_speedups``' narrow speed-ups of LeRobot, which change nothing written.
+recomputed, so the result is the dataset one writer makes (``tests/test_convert_parallel.py``).
+demo-factory's own metadata (provenance of every episode) goes in ``meta/demo_factory.json``: LeRobot
+0.6 drops unknown keys of ``meta/info.json`` when it rewrites it.
 """
 
 from __future__ import annotations
 
 import contextlib
 import io
+import json
 import multiprocessing
 import queue
 import shutil
@@ -20,25 +21,17 @@ from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import numpy as np
 from tqdm import tqdm
 
-from demo_factory.convert.features import (
-    CALIBRATION_LAYOUT,
-    DEPTH_ENCODING,
-    dataset_features,
-    dataset_frame,
-    episode_items,
-    image_key,
-)
-from demo_factory.convert.lerobot_speedups import VALUES, faster_lerobot_writer
+from demo_factory.convert.features import dataset_features, dataset_frame, episode_items
 from demo_factory.convert.result import SplitSummary
 from demo_factory.convert.splits import PlannedEpisode, SplitPlan
 from demo_factory.record import read_episode
 
-# meta/info.json["demo_factory"]["format_version"]: 2 = variation ids numbered as the HiveFormer
-# paper (push_buttons, tower); datasets without it (version 1) used an older numbering.
-DATASET_FORMAT_VERSION = 2
+# meta/demo_factory.json["format_version"]: 3 = LeRobot 0.6's native depth, provenance in that file;
+# 2 = LeRobot 0.4's packed depth, provenance in meta/info.json; 1 = variation ids before the paper's.
+DATASET_FORMAT_VERSION = 3
+PROVENANCE_FILE = "meta/demo_factory.json"
 # A split is cut into batches of at least this many episodes: each batch costs a process, a dataset and
 # its share of the merge (~1-2 s), which below ~16 episodes a split (2 batches) costs more than it saves.
 SMALLEST_BATCH = 8
@@ -60,56 +53,11 @@ class Layout:
     multi_task: bool
 
 
-class ImageMoments:
-    """Per-channel mean and standard deviation of RGB images, from exact integer sums.
-
-    LeRobot 0.4.4 squares uint8 pixels when it computes image statistics, which wraps around: the
-    stored standard deviations come out 30-60x too small (about 0.005 instead of 0.2-0.3), and a
-    policy that normalises images by them (ACT, diffusion) sees inputs blown up as much. The sums
-    are integers, so batches written apart and merged give exactly the figures of one writer.
-    """
-
-    def __init__(self):
-        self.count = 0
-        self.sums = np.zeros(3, dtype=np.int64)
-        self.squares = np.zeros(3, dtype=np.int64)
-
-    def add(self, rgb: np.ndarray) -> None:
-        pixels = rgb.reshape(-1, 3)
-        counts = np.stack([np.bincount(pixels[:, i], minlength=256) for i in range(3)])  # 7x faster than int64 sums
-        self.count += len(pixels)
-        self.sums += counts @ VALUES
-        self.squares += counts @ (VALUES * VALUES)
-
-    def merge(self, other: ImageMoments) -> None:
-        self.count += other.count
-        self.sums += other.sums
-        self.squares += other.squares
-
-    def mean_std(self) -> tuple[np.ndarray, np.ndarray]:
-        count = max(self.count, 1)
-        mean = self.sums / (255.0 * count)
-        return mean, np.sqrt(np.maximum(self.squares / (255.0 ** 2 * count) - mean ** 2, 0.0))
-
-
-def correct_image_stats(root: Path, moments: dict[str, ImageMoments]) -> None:
-    """Replace the mean and std of the RGB image features in ``meta/stats.json`` by exact ones."""
-    from lerobot.datasets.utils import load_stats, write_stats
-
-    stats = load_stats(root)
-    for key, moment in moments.items():
-        if key in stats and moment.count:
-            mean, std = moment.mean_std()
-            stats[key]["mean"], stats[key]["std"] = mean.reshape(3, 1, 1), std.reshape(3, 1, 1)
-    write_stats(stats, root)
-
-
 @dataclass
 class _Written:
     """What writing some of a split's episodes produced, besides the LeRobot dataset itself."""
 
-    moments: dict[str, ImageMoments] = field(default_factory=dict)
-    provenance: list[dict] = field(default_factory=list)  # meta/info.json["demo_factory"]["episodes"] rows
+    provenance: list[dict] = field(default_factory=list)  # meta/demo_factory.json["episodes"] rows
 
 
 def _write_episodes(episodes: list[PlannedEpisode], root: Path, repo_id: str, layout: Layout, first_index: int,
@@ -122,25 +70,20 @@ def _write_episodes(episodes: list[PlannedEpisode], root: Path, repo_id: str, la
     features = dataset_features(layout.cameras, layout.image_size, layout.action_space)
     dataset = LeRobotDataset.create(repo_id, layout.fps, features, root=root, use_videos=False,
                                     image_writer_threads=IMAGE_WRITER_THREADS)
-    written = _Written(moments={image_key(camera): ImageMoments() for camera in layout.cameras})
+    written = _Written()
     try:
-        with faster_lerobot_writer() as images:  # the same dataset, written faster
-            for index, planned in enumerate(episodes, start=first_index):
-                episode = read_episode(planned.source.path)
-                items = episode_items(episode, layout.granularity, layout.action_space, layout.stride)
-                for frame, action in items:
-                    item = dataset_frame(episode, frame, planned.instruction, action)
-                    for key, moment in written.moments.items():
-                        moment.add(item[key])
-                    dataset.add_frame(item)
-                    images.keep(dataset, item)
-                    advance(1)
-                dataset.save_episode()
-                images.clear()
-                written.provenance.append(_provenance_row(planned, index, len(items), layout.multi_task))
-            dataset.finalize()
+        for index, planned in enumerate(episodes, start=first_index):
+            episode = read_episode(planned.source.path)
+            items = episode_items(episode, layout.granularity, layout.action_space, layout.stride)
+            for frame, action in items:
+                dataset.add_frame(dataset_frame(episode, frame, planned.instruction, action))
+                advance(1)
+            dataset.save_episode()
+            written.provenance.append(_provenance_row(planned, index, len(items), layout.multi_task))
+        dataset.finalize()
     finally:
-        dataset.stop_image_writer()
+        if dataset.writer is not None:  # an error mid-way: the threads stop (the folder is discarded)
+            dataset.writer.stop_image_writer()
     shutil.rmtree(root / "images", ignore_errors=True)  # empty once the PNGs are embedded in the parquet files
     return written
 
@@ -207,7 +150,7 @@ def _write_batches(batches: list[list[PlannedEpisode]], root: Path, repo_id: str
             advance(progress.get())
         # The merge reads each batch through `datasets`, which keeps an Arrow copy of it in its cache:
         # that cache goes in a folder beside the batches, deleted with them, not in ~/.cache.
-        with contextlib.redirect_stderr(io.StringIO()), _datasets_cache(cache), faster_lerobot_writer():
+        with contextlib.redirect_stderr(io.StringIO()), _datasets_cache(cache):
             aggregate_datasets([repo_id] * len(parts), repo_id, roots=parts, aggr_root=root)
         restate_index_stats(root)
     finally:
@@ -233,13 +176,14 @@ INDEX_FEATURES = ("episode_index", "index", "task_index")
 
 
 def restate_index_stats(root: Path) -> None:
-    """LeRobot 0.4.4's ``aggregate_datasets`` renumbers episodes, frames and tasks in the merged data
-    but keeps each source's statistics of those numbers (from its own 0): recompute them from the
-    merged data with LeRobot's ``compute_episode_stats`` and ``aggregate_stats``, per episode in
-    ``meta/episodes`` and overall in ``meta/stats.json``, as one writer computes them."""
+    """LeRobot's ``aggregate_datasets`` merges the sources' overall statistics of the episode, frame and
+    task numbers, each counted from its own 0 (LeRobot 0.6 shifts the per-episode ones, not these):
+    recompute them from the merged data with LeRobot's ``compute_episode_stats`` and ``aggregate_stats``,
+    per episode in ``meta/episodes`` and overall in ``meta/stats.json``, as one writer computes them."""
     import pandas as pd
     from lerobot.datasets.compute_stats import aggregate_stats, compute_episode_stats
-    from lerobot.datasets.utils import DEFAULT_FEATURES, load_stats, write_stats
+    from lerobot.datasets.io_utils import load_stats, write_stats
+    from lerobot.utils.constants import DEFAULT_FEATURES
 
     features = {key: DEFAULT_FEATURES[key] for key in INDEX_FEATURES}
     data = pd.concat([pd.read_parquet(path, columns=list(INDEX_FEATURES))
@@ -261,8 +205,6 @@ def write_split(plan: SplitPlan, root: Path, repo_id: str, layout: Layout, progr
                 workers: int = 1) -> SplitSummary:
     """Write one split as a LeRobot dataset at ``root`` (which must not exist), with up to ``workers``
     processes writing consecutive batches of its episodes."""
-    from lerobot.datasets.utils import load_info, write_info
-
     advance = progress.update if progress is not None else (lambda _: None)
     if "fork" not in multiprocessing.get_all_start_methods():
         workers = 1  # batches are written by forked processes (Linux); elsewhere by this one
@@ -271,29 +213,19 @@ def write_split(plan: SplitPlan, root: Path, repo_id: str, layout: Layout, progr
         parts = [_write_episodes(plan.episodes, root, repo_id, layout, 0, advance)]
     else:
         parts = _write_batches(batches, root, repo_id, layout, advance)
-    moments = {key: ImageMoments() for key in parts[0].moments}
-    for part in parts:
-        for key, moment in part.moments.items():
-            moments[key].merge(moment)
     episodes = [row for part in parts for row in part.provenance]
     lengths = [row["frames"] for row in episodes]
-    correct_image_stats(root, moments)
-    info = load_info(root)
-    info["cameras"] = layout.cameras
-    info["depth_encoding"] = DEPTH_ENCODING
-    info["calibration_layout"] = CALIBRATION_LAYOUT
-    info["demo_factory"] = {
+    provenance = {
         "format_version": DATASET_FORMAT_VERSION,
         "task": layout.task,
         "split": plan.name,
         "instruction_source": plan.instruction_source,
         "granularity": layout.granularity,
+        "cameras": layout.cameras,
         **({"action_space": layout.action_space, "control_fps": layout.fps, "recorded_dense_fps": layout.recorded_fps}
            if layout.granularity == "dense" else {}),
         "episodes": episodes,
     }
-    write_info(info, root)
+    (root / PROVENANCE_FILE).write_text(json.dumps(provenance, indent=2) + "\n", encoding="utf-8")
     return SplitSummary(plan.name, repo_id, plan.instruction_source, len(plan.episodes), sum(lengths),
                         len({e.source.variation_id for e in plan.episodes}), min(lengths, default=0))
-
-

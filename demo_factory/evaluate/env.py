@@ -37,9 +37,9 @@ from demo_factory.convert.features import (
     DEFAULT_CONTROL_FPS,
     STATE_SIZE,
     calibration_key,
-    depth_key,
     image_key,
     observation_item,
+    pack_depth,
 )
 from demo_factory.planning import JointPlanner
 from demo_factory.sim import DEFAULT_CAMERAS, Kinematics, World
@@ -82,14 +82,15 @@ class EvalEpisode:
 
 
 def gym_observation(frame) -> dict:
-    """A frame in gym form: RGB and packed depth as uint8 ``pixels``, ``agent_pos`` (the state) and
-    ``environment_state`` (the cameras' calibration vectors, concatenated in camera order)."""
+    """A frame in gym form: RGB and depth as uint8 ``pixels`` (a gym image must be uint8: depth packed,
+    ``pack_depth``), ``agent_pos`` (the state) and ``environment_state`` (the cameras' calibration
+    vectors, concatenated in camera order)."""
     cameras = list(frame.cameras)
     item = observation_item(frame, cameras)
     pixels = {}
     for camera in cameras:
         pixels[camera] = item[image_key(camera)]
-        pixels[f"{camera}_depth"] = item[depth_key(camera)]
+        pixels[f"{camera}_depth"] = pack_depth(frame.cameras[camera].depth)
     return {"pixels": pixels, "agent_pos": item["observation.state"],
             "environment_state": np.concatenate([item[calibration_key(c)] for c in cameras])}
 

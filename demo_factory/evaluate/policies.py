@@ -88,9 +88,11 @@ def observation_batch(frame, instruction: str) -> dict:
 
     batch = {}
     for key, value in observation_item(frame, list(frame.cameras)).items():
-        tensor = torch.from_numpy(np.ascontiguousarray(value))
+        tensor = torch.from_numpy(np.ascontiguousarray(value, np.float32 if value.dtype == np.uint16 else None))
         if value.dtype == np.uint8:  # images: (H, W, 3) uint8 → (3, H, W) floats in [0, 1], as LeRobot loads them
             tensor = tensor.permute(2, 0, 1).float().div(255.0)
+        elif value.dtype == np.uint16:  # depth: (H, W, 1) mm → (1, H, W) float mm, as LeRobot loads it
+            tensor = tensor.permute(2, 0, 1)
         batch[key] = tensor[None]
     batch["task"] = [instruction]
     return batch

@@ -23,9 +23,9 @@ import hashlib
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
+from httpx import TransportError
 from huggingface_hub import CommitOperationAdd, HfApi, get_token
-from huggingface_hub.errors import RepositoryNotFoundError, RevisionNotFoundError
-from requests import HTTPError
+from huggingface_hub.errors import HfHubHTTPError, RepositoryNotFoundError, RevisionNotFoundError
 from huggingface_hub.utils.sha import git_hash
 
 from demo_factory.publish.plan import EXIT_HUB, LocalFile, PublishError, PublishPlan, SplitUpload, human_size
@@ -167,14 +167,14 @@ def publish(plan: PublishPlan, log: Callable[[str], None] = print) -> PublishRep
         return PublishReport(identity.get("name", "?"), reports)
     except PublishError:
         raise
-    except HTTPError as exc:  # HfHubHTTPError, and whoami's plain HTTPError on a bad token
+    except HfHubHTTPError as exc:  # the Hub answered with an error (huggingface_hub >= 1: never requests')
         status = exc.response.status_code if exc.response is not None else None
         why = {401: "the Hugging Face token was rejected (401): log in again with `huggingface-cli login` or fix HF_TOKEN",
                403: "not allowed to write (403): the repo belongs to someone else or the token has no write access"}
         message = why.get(status, f"the Hub answered {status or 'an error'}: {exc}")
         raise PublishError(scrub(f"{repo}: {message}; nothing further was sent, re-run the same command to "
                                  "finish once fixed", [token]), EXIT_HUB) from None
-    except (OSError, ConnectionError) as exc:  # requests' ConnectionError and Timeout are OSErrors
+    except (OSError, TransportError) as exc:  # no answer: httpx's connection, timeout and protocol errors
         reason = scrub(str(exc), [token])
         reason = reason if len(reason) <= 160 else reason[:160] + "…"
         raise PublishError(scrub(f"{repo}: network error ({type(exc).__name__}: {reason}); re-run the same command "

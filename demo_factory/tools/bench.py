@@ -269,19 +269,20 @@ def _history_items_per_second(root: Path, n_history: int, items: int) -> dict:
     meta = LeRobotDataset("bench/history", root=root).meta
     deltas = [i / meta.fps for i in range(1 - n_history, 1)]
     keys = [k for k in meta.features if k.startswith("observation.")] + ["action"]
-    dataset = LeRobotDataset("bench/history", root=root, delta_timestamps={k: deltas for k in keys})
-    for index in range(len(dataset)):  # page cache warm for both readers
-        dataset_reading.read_item(dataset, index)
-    frames = random.Random(0).sample(range(len(dataset)), min(items, len(dataset)))
+    stock = LeRobotDataset("bench/history", root=root, delta_timestamps={k: deltas for k in keys})
+    plugin = LeRobotDataset("bench/history", root=root, delta_timestamps={k: deltas for k in keys})
+    assert dataset_reading.use_history_once(plugin)
+    for index in range(len(plugin)):  # page cache warm for both readers
+        plugin[index]
+    frames = random.Random(0).sample(range(len(plugin)), min(items, len(plugin)))
     rates = {}
-    for name, read, count in (("stock", dataset_reading.stock_getitem, max(len(frames) // 6, 5)),
-                              ("plugin", dataset_reading.read_item, len(frames))):
+    for name, dataset, count in (("stock", stock, max(len(frames) // 6, 5)), ("plugin", plugin, len(frames))):
         began = time.perf_counter()
         for index in frames[:count]:
-            read(dataset, index)
+            dataset[index]
         rates[name] = count / (time.perf_counter() - began)
     torch.set_num_threads(threads)
-    return {"history_steps": n_history, "keys_with_history": len(keys), "frames_in_dataset": len(dataset),
+    return {"history_steps": n_history, "keys_with_history": len(keys), "frames_in_dataset": len(plugin),
             "stock_items_per_second": rates["stock"], "plugin_items_per_second": rates["plugin"],
             "speedup": rates["plugin"] / rates["stock"]}
 

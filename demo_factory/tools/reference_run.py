@@ -73,7 +73,7 @@ def act_train_command(dataset_root: Path, output_dir: Path, steps: int, batch_si
     info, provenance = read_dataset_provenance(dataset_root)
     shortest = min(e["frames"] for e in provenance["episodes"])
     features = info["features"]
-    cameras = info["cameras"]
+    cameras = provenance["cameras"]
     image_size = tuple(features[f"observation.images.{cameras[0]}"]["shape"][:2])
     args = act_train_args("local/reference_train", dataset_root, cameras, image_size, output_dir, steps=steps,
                           batch_size=batch_size, num_workers=1, log_freq=log_freq,

@@ -1,4 +1,4 @@
-"""Configuration of the HiveFormer policy (Guhur et al., CoRL 2022) for LeRobot 0.4.4.
+"""Configuration of the HiveFormer policy (Guhur et al., CoRL 2022) for LeRobot 0.6.
 
 Defaults follow the paper's best model (supplement §1): hidden size 64, 8 heads, a history of 6
 keyframes, the instruction as a sequence of frozen CLIP ViT-B/32 token features.
@@ -31,7 +31,7 @@ class HiveformerConfig(PreTrainedConfig):
     """HiveFormer: a keyframe policy conditioned on an instruction and the history of observations.
 
     Inputs are read from the dataset's features: every camera `<cam>` with `observation.images.<cam>`
-    must also have `observation.depth.<cam>` (millimetres packed as R = mm // 256, G = mm % 256) and
+    must also have `observation.depth.<cam>` (LeRobot's native depth, (1, H, W) millimetres) and
     `observation.calibration.<cam>` ([fx, fy, cx, cy] + world-from-camera 4x4). The policy rebuilds
     world-frame point clouds from them, so none of these may be normalised with dataset statistics,
     and neither may the state or the action: the predicted position is a point of the observed
@@ -187,11 +187,12 @@ class HiveformerConfig(PreTrainedConfig):
                         f"HiveFormer needs the feature '{key}' for camera '{camera}'; it is missing."
                     )
                 feature: PolicyFeature = inputs[key]
-                if feature_type is FeatureType.VISUAL and tuple(feature.shape) != expected_shape:
+                # Depth: one channel (millimetres) of the images' size.
+                shape = (1, *expected_shape[1:]) if key.startswith(DEPTH_PREFIX) else expected_shape
+                if feature_type is FeatureType.VISUAL and tuple(feature.shape) != shape:
                     raise ValueError(
-                        f"Feature '{key}' has shape {tuple(feature.shape)}; every image and depth "
-                        "feature must "
-                        f"have the shape of '{IMAGES_PREFIX + cameras[0]}', {expected_shape}."
+                        f"Feature '{key}' has shape {tuple(feature.shape)}; it must be {shape} "
+                        f"(every image has the shape of '{IMAGES_PREFIX + cameras[0]}', depth one channel of it)."
                     )
             calibration_shape = tuple(inputs[CALIBRATION_PREFIX + camera].shape)
             if calibration_shape != (CALIBRATION_DIM,):

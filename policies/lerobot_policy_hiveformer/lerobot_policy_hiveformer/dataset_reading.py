@@ -1,118 +1,94 @@
-"""The one place where this plugin changes LeRobot's behaviour: how `LeRobotDataset` reads an item.
+"""The one place where this plugin changes how LeRobot reads a dataset: keyframe history decoded once.
 
-Importing the plugin (which `lerobot-train` and `lerobot-eval` do before building the dataset) replaces
-`LeRobotDataset.__getitem__` of LeRobot 0.4.4 with `read_item` below. Two changes, nothing else:
+LeRobot 0.6's `DatasetReader._query_hf_dataset` reads each key with history as `hf_dataset[key][rows]`.
+With `datasets` >= 4.4 and LeRobot's custom transform that cannot take the column fast path: it
+decodes *every* column of the history rows (every PNG of every camera), once per key, so HiveFormer's
+11 history keys decode each image 11 times (LeRobot issues #2895 and #2315). `HistoryOnceReader`
+overrides that one method: the history rows are decoded once, with only the columns that have
+history. Its items equal the stock reader's (same keys, same tensors; tested).
 
-1. **History rows are read once, with only their columns.** With `datasets` >= 4.4 and LeRobot's
-   custom transform, the stock `_query_hf_dataset` cannot take the column fast path: for every key
-   with history it fetches the history rows and decodes *every* column of them (all PNG images of all
-   cameras), once per key — HiveFormer's 11 history keys decode each image 11 times (LeRobot issues
-   #2895 and #4392, fixed only in LeRobot 0.6, which needs Python 3.12). `read_item` decodes the
-   current row's columns without history once and the history rows' columns with history once.
-   The items are bit-identical to the stock path (same keys, same tensors; tested).
-2. **Image augmentation never touches packed depth.** LeRobot applies `image_transforms` to every
-   camera key; `observation.depth.<cam>` images hold millimetres packed into R and G, which colour
-   jitter or resizing corrupt (97 % of pixels changed, by up to 9.7 m). `read_item` applies the
-   transforms to the other camera keys only.
-
-The patch is applied only to the LeRobot version it was written against; with any other version
-the stock reader stays and a warning says so. `stock_getitem` keeps the original for comparison.
+It is applied only to the datasets HiveFormer trains on. `install()` (run when LeRobot imports the
+plugin) wraps `lerobot.datasets.factory.make_dataset`, which `lerobot-train` calls: when the training
+configuration's policy is HiveFormer, the dataset it returns reads with `HistoryOnceReader`; any other
+dataset of the process (an ACT run, a dataset opened by hand) keeps LeRobot's reader.
+`use_history_once(dataset)` does the same for a dataset built by hand. Version-checked: with a LeRobot
+other than 0.6.x nothing is replaced and a warning says so.
 """
 
+import functools
 import importlib.metadata
 import warnings
 
 import torch
+from lerobot.datasets.dataset_reader import DatasetReader
 
-PATCHED_LEROBOT_VERSION = "0.4.4"
-# Camera keys that hold packed depth, not colour: image augmentation must leave them alone.
-PACKED_DEPTH_PREFIX = "observation.depth."
-
-
-
-def _columns_view(dataset, columns: tuple[str, ...]):
-    """`dataset.hf_dataset` restricted to `columns` (its transform still applies), built once per table."""
-    source, views = dataset.__dict__.get("_hiveformer_column_views", (None, {}))
-    if source is not dataset.hf_dataset:  # first read, or the table was reloaded
-        views = {}
-        dataset.__dict__["_hiveformer_column_views"] = (dataset.hf_dataset, views)
-    if columns not in views:
-        views[columns] = dataset.hf_dataset.select_columns(list(columns))
-    return views[columns]
+SUPPORTED_LEROBOT = "0.6."  # the minor version whose `_query_hf_dataset` this overrides
+POLICY_TYPE = "hiveformer"
 
 
-def read_item(self, idx) -> dict:
-    """`LeRobotDataset.__getitem__` of LeRobot 0.4.4 with the two changes in the module docstring."""
-    self._ensure_hf_dataset_loaded()
-    history_keys = [key for key in (self.delta_indices or {}) if key not in self.meta.video_keys]
-    columns = self.hf_dataset.column_names
-    current_columns = tuple(c for c in columns if c not in history_keys)
-    item = _columns_view(self, current_columns)[idx]
-    ep_idx = item["episode_index"].item()
-    abs_idx = item["index"].item()
+class HistoryOnceReader(DatasetReader):
+    """LeRobot's reader, with each item's history rows decoded once for all keys with history."""
 
-    query_indices = None
-    if self.delta_indices is not None:
-        query_indices, padding = self._get_query_indices(abs_idx, ep_idx)
-        history = query_history_once(self, query_indices, tuple(history_keys))
-        # The stock reader's key order: the row's columns, then the padding masks.
-        item = {c: history[c] if c in history else item[c] for c in columns}
-        item.update(padding)
+    def _query_hf_dataset(self, query_indices: dict[str, list[int]]) -> dict:
+        keys = tuple(key for key in query_indices if key not in self._meta.video_keys)
+        if not keys:
+            return {}
+        to_relative = self._absolute_to_relative_idx
+        relative = {
+            key: query_indices[key] if to_relative is None else [to_relative[i] for i in query_indices[key]]
+            for key in keys
+        }
+        rows = sorted({row for indices in relative.values() for row in indices})
+        position = {row: i for i, row in enumerate(rows)}
+        decoded = self._columns_view(keys)[rows]  # {key: [value of each row]}
+        return {key: torch.stack([decoded[key][position[row]] for row in relative[key]]) for key in keys}
 
-    if len(self.meta.video_keys) > 0:
-        current_ts = item["timestamp"].item()
-        query_timestamps = self._get_query_timestamps(current_ts, query_indices)
-        video_frames = self._query_videos(query_timestamps, ep_idx)
-        item = {**video_frames, **item}
-
-    if self.image_transforms is not None:
-        for cam in self.meta.camera_keys:
-            if not cam.startswith(PACKED_DEPTH_PREFIX):
-                item[cam] = self.image_transforms(item[cam])
-
-    task_idx = item["task_index"].item()
-    item["task"] = self.meta.tasks.iloc[task_idx].name
-    if "subtask_index" in self.features and self.meta.subtasks is not None:
-        subtask_idx = item["subtask_index"].item()
-        item["subtask"] = self.meta.subtasks.iloc[subtask_idx].name
-    return item
+    def _columns_view(self, columns: tuple[str, ...]):
+        """`hf_dataset` restricted to `columns` (its transform still applies), built once per table."""
+        source, views = self.__dict__.get("_history_column_views", (None, {}))
+        if source is not self.hf_dataset:  # first read, or the table was reloaded
+            views = {}
+            self.__dict__["_history_column_views"] = (self.hf_dataset, views)
+        if columns not in views:
+            views[columns] = self.hf_dataset.select_columns(list(columns))
+        return views[columns]
 
 
-def query_history_once(dataset, query_indices: dict[str, list[int]], keys: tuple[str, ...]) -> dict:
-    """Every key's history (stacked, in query order), decoding each needed row and column once."""
-    if not keys:
-        return {}
-    to_relative = dataset._absolute_to_relative_idx
-    relative = {
-        key: query_indices[key] if to_relative is None else [to_relative[i] for i in query_indices[key]]
-        for key in keys
-    }
-    rows = sorted({row for indices in relative.values() for row in indices})
-    position = {row: i for i, row in enumerate(rows)}
-    decoded = _columns_view(dataset, keys)[rows]  # {key: [value of each row]}
-    return {
-        key: torch.stack([decoded[key][position[row]] for row in relative[key]]) for key in keys
-    }
+def supported() -> bool:
+    return importlib.metadata.version("lerobot").startswith(SUPPORTED_LEROBOT)
 
 
-def install() -> bool:
-    """Replace `LeRobotDataset.__getitem__` when LeRobot is the version this was written for."""
-    from lerobot.datasets.lerobot_dataset import LeRobotDataset
-
-    if LeRobotDataset.__getitem__ is read_item:
-        return True
-    version = importlib.metadata.version("lerobot")
-    if version != PATCHED_LEROBOT_VERSION:
-        warnings.warn(
-            f"lerobot_policy_hiveformer: LeRobot {version} is not {PATCHED_LEROBOT_VERSION}; keeping its stock "
-            "dataset reader (history reads may be slow, and image_transforms also apply to packed depth).",
-            stacklevel=2,
-        )
+def use_history_once(dataset) -> bool:
+    """Make `dataset` (a `LeRobotDataset`) read its history with `HistoryOnceReader`; False if it cannot."""
+    reader = getattr(dataset, "reader", None)
+    if not supported() or reader is None or type(reader) not in (DatasetReader, HistoryOnceReader):
         return False
-    global stock_getitem
-    stock_getitem = LeRobotDataset.__getitem__
-    LeRobotDataset.__getitem__ = read_item
+    reader.__class__ = HistoryOnceReader
     return True
 
 
-stock_getitem = None
+def install() -> bool:
+    """Wrap `make_dataset` so that HiveFormer trainings read with `HistoryOnceReader` (LeRobot 0.6.x only)."""
+    from lerobot.datasets import factory
+
+    if getattr(factory.make_dataset, "hiveformer_history_once", False):
+        return True
+    if not supported():
+        warnings.warn(
+            f"lerobot_policy_hiveformer: LeRobot {importlib.metadata.version('lerobot')} is not "
+            f"{SUPPORTED_LEROBOT}x; keeping its stock dataset reader (history reads may be slow).",
+            stacklevel=2,
+        )
+        return False
+    stock = factory.make_dataset
+
+    @functools.wraps(stock)
+    def make_dataset(cfg):
+        dataset = stock(cfg)
+        if getattr(getattr(cfg, "policy", None), "type", None) == POLICY_TYPE:
+            use_history_once(dataset)
+        return dataset
+
+    make_dataset.hiveformer_history_once = True
+    factory.make_dataset = make_dataset
+    return True

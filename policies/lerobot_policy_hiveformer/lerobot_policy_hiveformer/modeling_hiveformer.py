@@ -1,8 +1,8 @@
 """HiveFormer (Guhur et al., "Instruction-driven history-aware policies for robotic manipulations",
 CoRL 2022) as a LeRobot policy.
 
-Per keyframe step every camera gives RGB, a world-frame point cloud (rebuilt here from packed depth and
-calibration) and a channel marking the current gripper position. A shared UNet encoder turns each camera
+Per keyframe step every camera gives RGB, a world-frame point cloud (rebuilt here from depth in millimetres
+and calibration) and a channel marking the current gripper position. A shared UNet encoder turns each camera
 into a grid of tokens; a block-causal transformer mixes them with the instruction's CLIP token features
 and with the tokens of earlier steps; a UNet decoder scores every pixel of every camera, and the
 position is the softmax-weighted point cloud plus an offset; a small CNN predicts rotation and gripper.
@@ -36,16 +36,6 @@ LEAKY_SLOPE = 0.02
 FUSED_CPU_MIN_HEAD_DIM = 16
 
 # --- Geometry: pure functions ----------------------------------------------------------------------
-
-
-def unpack_depth_mm(packed: Tensor) -> Tensor:
-    """Depth in millimetres from the dataset's packed image: R = mm // 256, G = mm % 256 (as [0, 1] floats).
-
-    (..., 3, H, W) -> (..., H, W); 0 means no hit.
-    """
-    high = torch.round(packed[..., 0, :, :] * 255.0)
-    low = torch.round(packed[..., 1, :, :] * 255.0)
-    return high * 256.0 + low
 
 
 def depth_to_world_points(depth_m: Tensor, calibration: Tensor) -> Tensor:
@@ -135,9 +125,9 @@ def keyframe_observations(batch: dict, config: HiveformerConfig) -> KeyframeObse
         return x if has_time else x.unsqueeze(1)
 
     rgb = torch.stack([with_time(batch[IMAGES_PREFIX + cam]) for cam in cameras], dim=2)
-    packed_depth = torch.stack([with_time(batch[DEPTH_PREFIX + cam]) for cam in cameras], dim=2)
+    # LeRobot's native depth: (.., 1, H, W) millimetres, 0 = no hit.
+    depth_mm = torch.stack([with_time(batch[DEPTH_PREFIX + cam]) for cam in cameras], dim=2)[..., 0, :, :].float()
     calibration = torch.stack([with_time(batch[CALIBRATION_PREFIX + cam]) for cam in cameras], dim=2).float()
-    depth_mm = unpack_depth_mm(packed_depth.float())  # (B, T, C, H, W)
     valid_pixels = depth_mm > 0
     points = depth_to_world_points(depth_mm / 1000.0, calibration) * valid_pixels.unsqueeze(-3)
     gripper = with_time(batch[OBS_STATE])[..., :GRIPPER_STATE_DIM].float()

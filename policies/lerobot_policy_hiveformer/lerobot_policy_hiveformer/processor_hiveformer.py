@@ -5,7 +5,7 @@ named the same way, plus two registered steps (gym observation layout; batching 
 calibration), so that
 `lerobot-eval` overrides and `--policy.path` reloading work. The normalizer
 steps are kept for that reason but are identities: HiveFormer's configuration only accepts IDENTITY
-(images, packed depth, calibration, state and action are all consumed in physical units), and the
+(images, depth in millimetres, calibration, state and action are all consumed in physical units), and the
 point cloud is rebuilt inside the policy so that `select_action` works on raw observations.
 """
 
@@ -63,17 +63,25 @@ class AddBatchDimensionToDepthAndCalibrationStep(ObservationProcessorStep):
         return features
 
 
+def unpack_gym_depth(packed: Tensor) -> Tensor:
+    """(..., 3, H, W) packed depth as [0, 1] floats (R = mm // 256, G = mm % 256) -> (..., 1, H, W) mm."""
+    high = torch.round(packed[..., 0:1, :, :] * 255.0)
+    low = torch.round(packed[..., 1:2, :, :] * 255.0)
+    return high * 256.0 + low
+
+
 @dataclass
 @ProcessorStepRegistry.register(name="hiveformer_gym_observation_layout")
 class GymObservationLayoutStep(ObservationProcessorStep):
     """Accept observations from a gym environment run by `lerobot-eval`, which can only deliver
     `pixels`, `agent_pos` and `environment_state`.
 
-    Such an environment sends each camera's packed depth as the image `observation.images.<cam>_depth`
-    and the cameras' calibration vectors concatenated, in the order of the policy's cameras, as
-    `observation.environment_state` (B, 20 * n_cameras). This step maps them to the dataset layout
-    (`observation.depth.<cam>`, `observation.calibration.<cam>`); observations already in that layout
-    pass unchanged.
+    A gym observation's images must be uint8 RGB, so such an environment sends each camera's depth
+    packed into an image, `observation.images.<cam>_depth` with R = mm // 256 and G = mm % 256 (LeRobot
+    hands it over as [0, 1] floats), and the cameras' calibration vectors concatenated, in the order of
+    the policy's cameras, as `observation.environment_state` (B, 20 * n_cameras). This step maps them
+    to the dataset layout (`observation.depth.<cam>` as (B, 1, H, W) millimetres, LeRobot's native
+    depth; `observation.calibration.<cam>`); observations already in that layout pass unchanged.
     """
 
     cameras: list[str] | None = None  # the policy's cameras, in the order of its image features
@@ -83,7 +91,7 @@ class GymObservationLayoutStep(ObservationProcessorStep):
         for camera in self.cameras or []:
             gym_depth = f"{IMAGES_PREFIX}{camera}_depth"
             if gym_depth in observation and DEPTH_PREFIX + camera not in observation:
-                observation[DEPTH_PREFIX + camera] = observation.pop(gym_depth)
+                observation[DEPTH_PREFIX + camera] = unpack_gym_depth(observation.pop(gym_depth))
         calibrations = observation.get(ENVIRONMENT_STATE)
         missing = [c for c in self.cameras or [] if CALIBRATION_PREFIX + c not in observation]
         if missing and isinstance(calibrations, Tensor):
