@@ -280,7 +280,8 @@ def check_dataset_provenance(provenance: dict | None, root: Path | str) -> dict:
     """A converted split's provenance (``meta/demo_factory.json``), refused (``ConvertError``, one line)
     when it is missing or from a dataset format this demo-factory does not read."""
     if not provenance:
-        raise ConvertError(f"{root}: not a demo-factory dataset (no {PROVENANCE_FILE})")
+        raise ConvertError(f"{root}: not a demo-factory dataset (no {PROVENANCE_FILE}; LeRobot's dataset tools do "
+                           "not carry it over: evaluate with --task TASK --splits train,test instead)")
     found = provenance.get("format_version", 1)
     if found != DATASET_FORMAT_VERSION:
         why = ("is older (variation numbering or packed depth of LeRobot 0.4); convert its recordings again"

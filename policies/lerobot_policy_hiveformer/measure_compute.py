@@ -39,7 +39,7 @@ def features(size: int) -> tuple[dict, dict]:
     inputs = {}
     for camera in CAMERAS:
         inputs[f"observation.images.{camera}"] = PolicyFeature(FeatureType.VISUAL, (3, size, size))
-        inputs[f"observation.depth.{camera}"] = PolicyFeature(FeatureType.VISUAL, (3, size, size))
+        inputs[f"observation.depth.{camera}"] = PolicyFeature(FeatureType.VISUAL, (1, size, size))
         inputs[f"observation.calibration.{camera}"] = PolicyFeature(FeatureType.STATE, (20,))
     inputs["observation.state"] = PolicyFeature(FeatureType.STATE, (15,))
     return inputs, {"action": PolicyFeature(FeatureType.ACTION, (8,))}
@@ -54,14 +54,12 @@ def calibration(camera_index: int, size: int) -> torch.Tensor:
 
 
 def observation_batch(batch_size: int, steps: int | None, size: int) -> dict:
-    """Random RGB, a flat table 0.6-0.8 m away as packed depth, real-looking calibration and state."""
+    """Random RGB, a flat table 0.6-0.8 m away (depth in mm), real-looking calibration and state."""
     lead = (batch_size,) if steps is None else (batch_size, steps)
     batch = {}
     for i, camera in enumerate(CAMERAS):
-        mm = torch.full((*lead, size, size), 600.0 + 100 * i)
-        depth = torch.stack([torch.div(mm, 256, rounding_mode="floor"), mm % 256, torch.zeros_like(mm)], -3)
         batch[f"observation.images.{camera}"] = torch.rand(*lead, 3, size, size)
-        batch[f"observation.depth.{camera}"] = depth / 255.0
+        batch[f"observation.depth.{camera}"] = torch.full((*lead, 1, size, size), 600.0 + 100 * i)
         batch[f"observation.calibration.{camera}"] = calibration(i, size).float().expand(*lead, 20).clone()
     state = torch.zeros(*lead, 15)
     state[..., :3] = torch.rand(*lead, 3) * 0.2
