@@ -14,7 +14,7 @@ DEMO_DATASET := data/lerobot/push_buttons
 FFMPEG_LIBS := libavutil57 libavcodec59 libavformat59 libavfilter8 libavdevice59 libswscale6 libswresample4
 SUDO := $(shell [ "$$(id -u)" = 0 ] || echo sudo -n)
 
-.PHONY: install demo test bench reference reference-act cards clean
+.PHONY: install demo test bench reference reference-tower reference-act cards clean
 
 install: $(STAMP)
 
@@ -54,6 +54,11 @@ bench: install
 # → closed-loop eval, on a 2-core CPU in about 45 minutes; resumes if interrupted. Results in outputs/reference/.
 reference: install
 	$(BIN)/python -m demo_factory.tools.reference_run --out outputs/reference
+
+# The same chain for tower (1, 2 and 3 cubes; history 25 = the longest episode), with a learning curve
+# (success on the seen variations at 3 checkpoints). Results in outputs/reference_tower/.
+reference-tower: install
+	$(BIN)/python -m demo_factory.tools.reference_run --task tower --curve 3 --out outputs/reference_tower
 
 # The same chain for ACT on a dense export of one variation (outputs/reference_act/).
 reference-act: install

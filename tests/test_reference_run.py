@@ -27,6 +27,32 @@ def test_reference_run_chain_writes_its_results(tmp_path):
     assert again["stage_seconds"] == {} and again["results"] == summary["results"]
 
 
+@pytest.mark.slow
+def test_tower_reference_run_takes_its_history_from_the_longest_episode_and_plots_a_curve(tmp_path):
+    out = tmp_path / "tower"
+    arguments = ["--task", "tower", "--out", str(out), "--variation", "46", "--variation", "0",
+                 "--episodes-per-variation", "1", "--test-episodes", "1", "--steps", "2", "--curve", "2",
+                 "--batch-size", "2", "--eval-episodes", "1", "--workers", "1", "--image-size", "32",
+                 "--text-encoder", "one_hot"]
+    assert main(arguments) == 0
+    summary = json.loads((out / "reference_run.json").read_text())
+    assert summary["configuration"]["n_history"] == 17  # the two-cube episode: 8 keyframes a cube + the start
+    config = json.loads((out / "train" / "checkpoints" / "last" / "pretrained_model" / "config.json").read_text())
+    assert config["n_history"] == 17
+    assert [c["step"] for c in summary["learning_curve"]] == [1, 2]
+    assert all(0.0 <= c["success_rate"] <= 1.0 and c["per_variation"] for c in summary["learning_curve"])
+    assert (out / "curve" / "000001" / "results.json").exists()
+    assert "eval_step_1" in summary["stage_seconds"]
+    assert json.loads((out / "eval" / "results.json").read_text())["task"] == "tower"
+
+
+def test_curve_must_divide_the_steps():
+    with pytest.raises(SystemExit):
+        main(["--steps", "10", "--curve", "3"])
+    with pytest.raises(SystemExit):
+        main(["--policy", "act", "--task", "tower"])
+
+
 def test_act_reference_trains_with_the_chunk_its_shortest_episode_holds(tmp_path):
     from demo_factory.convert import DATASET_FORMAT_VERSION
     from demo_factory.tools.reference_run import act_train_command

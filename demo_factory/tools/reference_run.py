@@ -2,10 +2,14 @@
 
     python -m demo_factory.tools.reference_run [--out outputs/reference] [--steps 1500] ...   (or `make reference`)
     python -m demo_factory.tools.reference_run --policy act [--out outputs/reference_act]     (or `make reference-act`)
+    python -m demo_factory.tools.reference_run --task tower [--out outputs/reference_tower]   (or `make reference-tower`)
 
 The whole chain with the real components and the commands a user runs: `demo-factory generate`
-(push_buttons demonstrations of a few train variations, plus test-variation episodes for the unseen
-splits) → `demo-factory convert` → `lerobot-train` → `demo-factory eval` on new scene seeds, per split.
+(push_buttons or tower demonstrations of a few train variations, one of each length, plus test-variation
+episodes for the unseen splits) → `demo-factory convert` → `lerobot-train` → `demo-factory eval` on new
+scene seeds, per split. HiveFormer's history holds the longest training episode (push_buttons 10
+keyframes, tower 25). With `--curve N` the training also saves N - 1 intermediate checkpoints, each
+evaluated on the seen variations: a learning curve that tells how far a longer run would go.
 HiveFormer (the default) trains on the keyframe export; ACT on the dense export (20 fps, joint-position
 actions), with the command the converter suggests for it. Every stage writes into its own folder under
 --out and is skipped when that folder is complete, so an interrupted run resumes where it stopped.
@@ -32,13 +36,15 @@ BIN = Path(sys.executable).parent
 # Seen variations, one of each length: 205 (maroon) is past the paper's 0-199 (its train ids have no
 # one-button variation); 24 (navy, cyan) and 2 (blue, olive, orange) are paper train variations.
 DEFAULT_VARIATIONS = ("205", "24", "2")
+# tower: paper train variations 46 (green), 0 (black, yellow), 1 (white, gray, red): 9, 17, 25 keyframes.
+TASK_VARIATIONS = {"push_buttons": DEFAULT_VARIATIONS, "tower": ("46", "0", "1")}
 # The CPU configuration: camera size, batch, steps, instruction encoder.
 REFERENCE_IMAGE_SIZE = 64
 REFERENCE_BATCH_SIZE = 16
 REFERENCE_STEPS = 1500
 REFERENCE_TEXT_ENCODER = "one_hot"
-# Keyframes of history: 10 holds a whole push_buttons episode (at most 10 keyframes), as the authors
-# feed whole episodes; with fewer, windows that slide past the episode start look alike.
+# Keyframes of history: by default the longest training episode (push_buttons: 10), as the authors feed
+# whole episodes; with fewer, windows that slide past the episode start look alike.
 REFERENCE_HISTORY = 10
 # Each policy's run: seen variations, episodes, steps, batch, evaluation episodes. ACT takes no
 # instruction, so it learns one variation (blue: one button) and is evaluated on it alone.
@@ -52,16 +58,21 @@ DENSE_FPS = 20  # the dense export's control rate (ACT)
 TRAIN_SEED = 1000  # lerobot-train's own default
 
 
+def longest_episode(dataset_root: Path) -> int:
+    """Frames (keyframes) of the split's longest episode."""
+    return max(e["frames"] for e in read_dataset_provenance(dataset_root)[1]["episodes"])
+
+
 def train_command(dataset_root: Path, output_dir: Path, steps: int = REFERENCE_STEPS,
                   batch_size: int = REFERENCE_BATCH_SIZE, text_encoder: str = REFERENCE_TEXT_ENCODER,
-                  n_history: int = REFERENCE_HISTORY, log_freq: int = 50) -> list[str]:
+                  n_history: int = REFERENCE_HISTORY, log_freq: int = 50, save_freq: int | None = None) -> list[str]:
     """`lerobot-train` of HiveFormer on CPU in the reference configuration (no attention dropout: on CPU
     it forces PyTorch's unfused attention; one loader worker beside the two training threads)."""
     return [str(BIN / "lerobot-train"), "--policy.type=hiveformer", "--dataset.repo_id=local/reference_train",
             f"--dataset.root={dataset_root}", "--policy.device=cpu", "--policy.push_to_hub=false",
             f"--policy.text_encoder={text_encoder}", "--policy.attention_dropout=0",
             f"--policy.n_history={n_history}", f"--steps={steps}",
-            f"--batch_size={batch_size}", "--num_workers=1", f"--save_freq={steps}", f"--log_freq={log_freq}",
+            f"--batch_size={batch_size}", "--num_workers=1", f"--save_freq={save_freq or steps}", f"--log_freq={log_freq}",
             "--wandb.enable=false", f"--output_dir={output_dir}"]
 
 
@@ -91,6 +102,24 @@ def train_log_timings(log: str) -> dict:
         return {"error": "no training log lines"}
     update_s, data_s = statistics.median(updates), statistics.median(data)
     return {"updt_s": update_s, "data_s": data_s, "data_share_of_step": data_s / (update_s + data_s)}
+
+
+def learning_curve(train: Path, evaluation: Path, dataset: Path, episodes: int, timings: dict, out: Path) -> list[dict]:
+    """Success on the seen variations (the train split) at every saved checkpoint: the earlier ones
+    evaluated here (`OUT/curve/<step>/`), the last one taken from the full evaluation."""
+    saved = sorted((p for p in (train / "checkpoints").iterdir() if p.name.isdigit()), key=lambda p: int(p.name))
+    curve = []
+    for checkpoint in saved:
+        folder = evaluation if checkpoint == saved[-1] else out / "curve" / checkpoint.name
+        if checkpoint != saved[-1]:
+            stage(f"eval_step_{int(checkpoint.name)}", folder / "results.json", timings,
+                  [str(BIN / "demo-factory"), "eval", "--policy.path", str(checkpoint / "pretrained_model"),
+                   "--dataset", str(dataset), "--splits", "train", "--episodes", str(episodes),
+                   "--out", str(folder), "--overwrite"], out)
+        seen = json.loads((folder / "results.json").read_text())["splits"]["train"]
+        curve.append({"step": int(checkpoint.name), "success_rate": seen["success_rate"],
+                      "per_variation": {v: r["success_rate"] for v, r in seen["per_variation"].items()}})
+    return curve
 
 
 def run(command: list[str], log: Path) -> None:
@@ -123,10 +152,13 @@ def main(argv=None) -> int:
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--policy", choices=sorted(PRESETS), default="hiveformer",
                         help="hiveformer on the keyframe export, or act on the dense export (default: hiveformer)")
-    parser.add_argument("--out", type=Path, help="run folder, resumed if present "
-                        "(default: outputs/reference, outputs/reference_act for ACT)")
-    parser.add_argument("--variation", action="append", help="seen push_buttons variation id or colour sequence "
-                        f"(repeatable; default: {', '.join(DEFAULT_VARIATIONS)}; ACT: blue)")
+    parser.add_argument("--out", type=Path, help="run folder, resumed if present (default: outputs/reference; "
+                        "outputs/reference_tower, outputs/reference_act)")
+    parser.add_argument("--task", choices=sorted(TASK_VARIATIONS), default="push_buttons",
+                        help="push_buttons (default) or tower (HiveFormer only)")
+    parser.add_argument("--variation", action="append", help="seen variation id or colour sequence (repeatable; "
+                        f"default push_buttons: {', '.join(DEFAULT_VARIATIONS)}, tower: "
+                        f"{', '.join(TASK_VARIATIONS['tower'])}; ACT: blue)")
     parser.add_argument("--episodes-per-variation", type=int, help="training episodes per seen variation "
                         "(default: 40; ACT: 50)")
     parser.add_argument("--test-episodes", type=int, help="episodes of test variations for the unseen splits "
@@ -136,24 +168,32 @@ def main(argv=None) -> int:
     parser.add_argument("--steps", type=int, help=f"lerobot-train steps (default: {REFERENCE_STEPS}; ACT: 1000)")
     parser.add_argument("--batch-size", type=int, help=f"default: {REFERENCE_BATCH_SIZE}; ACT: 8")
     parser.add_argument("--text-encoder", default=REFERENCE_TEXT_ENCODER, help="HiveFormer instruction encoder")
-    parser.add_argument("--n-history", type=int, default=REFERENCE_HISTORY, help="HiveFormer keyframes of history")
+    parser.add_argument("--n-history", type=int, help="HiveFormer keyframes of history (default: the longest "
+                        "training episode)")
+    parser.add_argument("--curve", type=int, default=1, help="checkpoints evaluated on the seen variations, "
+                        "evenly spaced (default: 1 = the last only)")
     parser.add_argument("--eval-episodes", type=int, help="evaluation episodes per split (default: 40; ACT: 20)")
     parser.add_argument("--workers", type=int, default=2, help="generation processes")
     parser.add_argument("--seed", type=int, default=TRAIN_SEED, help="lerobot-train's seed: other seeds show how "
                         f"much the result varies with the initial weights and batch order (default: {TRAIN_SEED})")
     args = parser.parse_args(argv)
+    if args.policy != "hiveformer" and args.task != "push_buttons":
+        parser.error(f"--task {args.task}: the {args.policy} reference run is push_buttons only")
     for name, value in PRESETS[args.policy].items():
         if getattr(args, name, None) is None and name != "variations":
             setattr(args, name, value)
-    variations = args.variation or list(PRESETS[args.policy]["variations"])
-    out = args.out or Path("outputs/reference" + ("" if args.policy == "hiveformer" else f"_{args.policy}"))
+    if args.curve < 1 or args.steps % args.curve:
+        parser.error(f"--curve {args.curve}: a positive number of checkpoints that divides --steps {args.steps}")
+    variations = args.variation or list(PRESETS[args.policy]["variations"] if args.policy != "hiveformer"
+                                        else TASK_VARIATIONS[args.task])
     dense = args.policy != "hiveformer"
+    out = args.out or Path("outputs/reference" + ("_act" if dense else "" if args.task == "push_buttons" else "_tower"))
     out.mkdir(parents=True, exist_ok=True)
     timings: dict = {}
     began = time.time()
 
     raw, dataset, train, evaluation = out / "raw", out / "dataset", out / "train", out / "eval"
-    generate = [str(BIN / "demo-factory"), "generate", "--task", "push_buttons", "--image-size", str(args.image_size),
+    generate = [str(BIN / "demo-factory"), "generate", "--task", args.task, "--image-size", str(args.image_size),
                 "--workers", str(args.workers), *(["--dense-fps", str(DENSE_FPS)] if dense else [])]
     stage("generate_train", raw / "train" / ".complete", timings,
           generate + ["--split", "train", *[f"--variation={v}" for v in variations],
@@ -176,21 +216,26 @@ def main(argv=None) -> int:
     if dense:
         command = act_train_command(dataset / "train", train, args.steps, args.batch_size)
     else:
+        args.n_history = args.n_history or longest_episode(dataset / "train")
         command = train_command(dataset / "train", train, args.steps, args.batch_size, args.text_encoder,
-                                args.n_history)
+                                args.n_history, save_freq=args.steps // args.curve)
     stage("train", checkpoint, timings, command + [f"--seed={args.seed}"], out)
     stage("eval", evaluation / "results.json", timings,
           [str(BIN / "demo-factory"), "eval", "--policy.path", str(checkpoint), "--dataset", str(dataset),
            "--episodes", str(args.eval_episodes), "--out", str(evaluation), "--overwrite"], out)
 
     results = json.loads((evaluation / "results.json").read_text())
+    curve = learning_curve(train, evaluation, dataset, args.eval_episodes, timings, out) if args.curve > 1 else []
     train_log = out / "train.log"
     summary = {"configuration": vars(args) | {"out": str(out), "variations": variations,
                                               **({"dense_fps": DENSE_FPS, "action_space": "joints"} if dense else {})},
                "stage_seconds": timings, "train_step": train_log_timings(train_log.read_text() if train_log.exists() else ""), "wall_seconds_this_invocation": round(time.time() - began, 1),
-               "results": results}
+               "learning_curve": curve, "results": results}
     (out / "reference_run.json").write_text(json.dumps(summary, indent=2, default=str) + "\n")
     print((evaluation / "results.md").read_text())
+    if curve:
+        print("Learning curve (seen variations): " + ", ".join(f"step {c['step']}: {100 * c['success_rate']:.1f} %"
+                                                              for c in curve))
     print(f"reference run: {summary['wall_seconds_this_invocation']:.0f} s; figures in {out / 'reference_run.json'}")
     return 0
 
