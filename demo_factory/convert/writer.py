@@ -18,7 +18,7 @@ import queue
 import shutil
 from collections.abc import Callable
 from concurrent.futures import ProcessPoolExecutor
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 from tqdm import tqdm
@@ -53,15 +53,8 @@ class Layout:
     multi_task: bool
 
 
-@dataclass
-class _Written:
-    """What writing some of a split's episodes produced, besides the LeRobot dataset itself."""
-
-    provenance: list[dict] = field(default_factory=list)  # meta/demo_factory.json["episodes"] rows
-
-
 def _write_episodes(episodes: list[PlannedEpisode], root: Path, repo_id: str, layout: Layout, first_index: int,
-                    advance: Callable[[int], None]) -> _Written:
+                    advance: Callable[[int], None]) -> list[dict]:
     """Write ``episodes`` as one LeRobot dataset at ``root`` (which must not exist) with LeRobot's writer."""
     import datasets  # heavy imports (torch), only when writing
     from lerobot.datasets.lerobot_dataset import LeRobotDataset
@@ -70,7 +63,7 @@ def _write_episodes(episodes: list[PlannedEpisode], root: Path, repo_id: str, la
     features = dataset_features(layout.cameras, layout.image_size, layout.action_space)
     dataset = LeRobotDataset.create(repo_id, layout.fps, features, root=root, use_videos=False,
                                     image_writer_threads=IMAGE_WRITER_THREADS)
-    written = _Written()
+    provenance = []  # meta/demo_factory.json["episodes"] rows
     try:
         for index, planned in enumerate(episodes, start=first_index):
             episode = read_episode(planned.source.path)
@@ -79,13 +72,13 @@ def _write_episodes(episodes: list[PlannedEpisode], root: Path, repo_id: str, la
                 dataset.add_frame(dataset_frame(episode, frame, planned.instruction, action))
                 advance(1)
             dataset.save_episode()
-            written.provenance.append(_provenance_row(planned, index, len(items), layout.multi_task))
+            provenance.append(_provenance_row(planned, index, len(items), layout.multi_task))
         dataset.finalize()
     finally:
         if dataset.writer is not None:  # an error mid-way: the threads stop (the folder is discarded)
             dataset.writer.stop_image_writer()
     shutil.rmtree(root / "images", ignore_errors=True)  # empty once the PNGs are embedded in the parquet files
-    return written
+    return provenance
 
 
 def _provenance_row(planned: PlannedEpisode, index: int, frames: int, multi_task: bool) -> dict:
@@ -120,12 +113,12 @@ def _start_batch_worker(progress: multiprocessing.Queue) -> None:
     _PROGRESS = progress
 
 
-def _write_batch(episodes, root, repo_id, layout, first_index) -> _Written:
+def _write_batch(episodes, root, repo_id, layout, first_index) -> list[dict]:
     return _write_episodes(episodes, root, repo_id, layout, first_index, _PROGRESS.put)
 
 
 def _write_batches(batches: list[list[PlannedEpisode]], root: Path, repo_id: str, layout: Layout,
-                   advance: Callable[[int], None]) -> list[_Written]:
+                   advance: Callable[[int], None]) -> list[list[dict]]:
     """Each batch written by its own forked process next to ``root``, then merged into ``root`` in
     order by LeRobot's ``aggregate_datasets``."""
     from lerobot.datasets.aggregate import aggregate_datasets
@@ -213,7 +206,7 @@ def write_split(plan: SplitPlan, root: Path, repo_id: str, layout: Layout, progr
         parts = [_write_episodes(plan.episodes, root, repo_id, layout, 0, advance)]
     else:
         parts = _write_batches(batches, root, repo_id, layout, advance)
-    episodes = [row for part in parts for row in part.provenance]
+    episodes = [row for part in parts for row in part]
     lengths = [row["frames"] for row in episodes]
     provenance = {
         "format_version": DATASET_FORMAT_VERSION,
