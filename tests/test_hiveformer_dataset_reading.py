@@ -1,11 +1,15 @@
-"""The plugin's dataset reader: LeRobot's items, bit for bit, only for HiveFormer trainings; native depth
-never augmented."""
+"""The plugin's dataset reader: LeRobot's items, bit for bit, only for HiveFormer trainings; whole-episode
+samples with paraphrased instructions there; native depth never augmented."""
 
 import copy
+import json
+import shutil
+from collections import Counter
 from types import SimpleNamespace
 
+import pytest
 import torch
-from hiveformer_fixtures import EPISODE_LENGTHS, tiny_config, tiny_dataset_root
+from hiveformer_fixtures import EPISODE_LENGTHS, INSTRUCTIONS, tiny_config, tiny_dataset_root
 from lerobot.configs.default import DatasetConfig
 from lerobot.datasets import factory
 from lerobot.datasets.dataset_reader import DatasetReader
@@ -18,12 +22,13 @@ __all__ = ["tiny_dataset_root"]  # the fixture is used by name
 HISTORY = 3
 
 
-def history_dataset(root, episodes=None, image_transforms=None) -> LeRobotDataset:
-    """The dataset as lerobot-train builds it for HiveFormer: every observation key and the action with history."""
+def history_dataset(root, episodes=None, image_transforms=None, history=HISTORY) -> LeRobotDataset:
+    """The dataset as lerobot-train builds it for HiveFormer: every observation key and the action with history
+    (the action one step longer: the look-back action)."""
     meta = LeRobotDataset("local/tiny", root=root).meta
-    deltas = [i / meta.fps for i in range(1 - HISTORY, 1)]
+    deltas = [i / meta.fps for i in range(1 - history, 1)]
     delta_timestamps = {key: deltas for key in meta.features if key.startswith("observation.")}
-    delta_timestamps["action"] = deltas
+    delta_timestamps["action"] = [i / meta.fps for i in range(-history, 1)]
     return LeRobotDataset(
         "local/tiny",
         root=root,
@@ -56,14 +61,79 @@ def training_config(root, policy) -> SimpleNamespace:
                            trainable_config=policy, tolerance_s=1e-4, num_workers=0)
 
 
-def test_only_hiveformer_trainings_get_the_history_once_reader(tiny_dataset_root):
+def test_only_hiveformer_trainings_get_the_training_reader(tiny_dataset_root):
     assert getattr(factory.make_dataset, "hiveformer_history_once", False)  # installed by the plugin's import
     config, meta = tiny_config(tiny_dataset_root)
     hiveformer = factory.make_dataset(training_config(tiny_dataset_root, config))
-    assert type(hiveformer.reader) is dataset_reading.HistoryOnceReader
+    assert type(hiveformer.reader) is dataset_reading.TrainingReader
     act = ACTConfig(device="cpu", input_features=config.input_features, output_features=config.output_features)
     assert type(factory.make_dataset(training_config(tiny_dataset_root, act)).reader) is DatasetReader
     assert type(LeRobotDataset("local/tiny", root=tiny_dataset_root).reader) is DatasetReader  # by hand: stock
+
+
+def test_a_training_without_n_history_gets_the_longest_episode(tiny_dataset_root):
+    config, _ = tiny_config(tiny_dataset_root, n_history=None)
+    dataset = factory.make_dataset(training_config(tiny_dataset_root, config))
+    assert config.n_history == max(EPISODE_LENGTHS) == 6
+    assert dataset[0]["observation.state"].shape[0] == 6
+
+
+def episode_of_each_frame() -> list[tuple[int, int]]:
+    """(first frame, last frame) of the episode of every frame of the tiny dataset."""
+    spans, start = [], 0
+    for length in EPISODE_LENGTHS:
+        spans += [(start, start + length - 1)] * length
+        start += length
+    return spans
+
+
+def test_whole_episode_samples_are_the_stock_window_of_the_episode_end(tiny_dataset_root):
+    """Every frame drawn gives its whole episode: the stock item of the episode's last frame, every real
+    step of it an action target; an episode longer than the history keeps the stock window."""
+    config, _ = tiny_config(tiny_dataset_root, n_history=5)  # episodes of 4, 5, 4 frames fit; 6 does not
+    dataset = factory.make_dataset(training_config(tiny_dataset_root, config))
+    stock = history_dataset(tiny_dataset_root, history=5)
+    for index, (first, last) in enumerate(episode_of_each_frame()):
+        fits = last - first + 1 <= 5
+        assert_same_items(stock[last if fits else index], dataset[index])
+        if fits:
+            assert int((~dataset[index]["action_is_pad"]).sum()) == last - first + 1
+
+
+def test_whole_episodes_off_keeps_the_stock_windows(tiny_dataset_root):
+    config, _ = tiny_config(tiny_dataset_root, n_history=6, whole_episodes=False)
+    dataset = factory.make_dataset(training_config(tiny_dataset_root, config))
+    stock = history_dataset(tiny_dataset_root, history=6)
+    for index in range(len(dataset)):
+        assert_same_items(stock[index], dataset[index])
+
+
+@pytest.fixture
+def paraphrased_root(tiny_dataset_root, tmp_path):
+    root = tmp_path / "tiny"
+    shutil.copytree(tiny_dataset_root, root)
+    (root / dataset_reading.PARAPHRASES_FILE).write_text(json.dumps({INSTRUCTIONS[0]: ["press maroon", "maroon!"]}))
+    return root
+
+
+def test_training_samples_draw_their_instruction_among_the_paraphrases(paraphrased_root):
+    config, _ = tiny_config(paraphrased_root)
+    dataset = factory.make_dataset(training_config(paraphrased_root, config))
+    torch.manual_seed(0)
+    drawn = Counter(dataset[0]["task"] for _ in range(200))  # frame 0: episode 0, INSTRUCTIONS[0]
+    assert set(drawn) == {"press maroon", "maroon!"} and min(drawn.values()) > 60
+    assert dataset[4]["task"] == INSTRUCTIONS[1]  # episode 1: no paraphrases listed, unchanged
+    # One-hot codes name strings, not meanings: no paraphrases there; nor with the switch off.
+    for overrides in ({"text_encoder": "one_hot"}, {"sample_paraphrases": False}):
+        config, _ = tiny_config(paraphrased_root, **overrides)
+        assert factory.make_dataset(training_config(paraphrased_root, config))[0]["task"] == INSTRUCTIONS[0]
+
+
+def test_a_malformed_paraphrase_file_is_refused_in_one_line(paraphrased_root):
+    (paraphrased_root / dataset_reading.PARAPHRASES_FILE).write_text(json.dumps({INSTRUCTIONS[0]: "press maroon"}))
+    config, _ = tiny_config(paraphrased_root)
+    with pytest.raises(ValueError, match="task_paraphrases.json: expected an object"):
+        factory.make_dataset(training_config(paraphrased_root, config))
 
 
 def test_items_with_history_are_bit_identical_to_the_stock_reader(tiny_dataset_root):

@@ -230,6 +230,8 @@ def test_save_and_load_give_identical_outputs(tiny_dataset_root, tmp_path):
         {"instruction_as_sequence": False},
         {"text_encoder": "one_hot"},
         {"use_position_embeddings": False},
+        {"instruction_position_embeddings": False},
+        {"stem_point_cloud": True},
     ],
 )
 def test_ablations_train_and_act(tiny_dataset_root, ablation):
@@ -245,6 +247,40 @@ def test_ablations_train_and_act(tiny_dataset_root, ablation):
             ["push the maroon button", "stack 2 navy blocks"]
         )
     assert policy.select_action(single_step(batch, -1)).shape == (2, 8)
+
+
+def test_the_stem_sees_rgb_and_the_gripper_mark_as_the_authors_unless_told(tiny_dataset_root):
+    """4 channels (RGB + mark) by default; xyz reaches the tokens through each patch's mean point. With
+    stem_point_cloud the 7-channel input (RGB, world xyz, mark)."""
+    assert make_tiny_policy(tiny_dataset_root).model.encoder.stem[0].in_channels == 4
+    assert make_tiny_policy(tiny_dataset_root, stem_point_cloud=True).model.encoder.stem[0].in_channels == 7
+
+
+@pytest.mark.parametrize("positions", [True, False])
+def test_instruction_token_order_matters_only_with_position_embeddings(tiny_dataset_root, positions):
+    """Cross-attention alone is blind to the order of the instruction tokens; the learned position
+    embeddings are what tell "red, then blue" from "blue, then red"."""
+    policy = make_tiny_policy(tiny_dataset_root, instruction_position_embeddings=positions).eval()
+    batch = history_batch(tiny_dataset_root, policy.config, [2, 8])
+    obs = modeling_hiveformer.keyframe_observations(batch, policy.config)
+    features, mask = policy._encode_instructions(obs.instructions, torch.device("cpu"))
+    tokens = policy.model.encode_steps(obs, obs.step_valid).tokens
+    length = int(mask[0].sum())
+    reversed_features = features.clone()
+    reversed_features[0, :length] = features[0, :length].flip(0)
+    with torch.no_grad():
+        plain = policy.model.contextualise(tokens, obs.step_valid, features, mask)
+        reordered = policy.model.contextualise(tokens, obs.step_valid, reversed_features, mask)
+    assert torch.allclose(plain[1], reordered[1])  # the other sample's instruction is unchanged
+    assert torch.allclose(plain[0], reordered[0], atol=1e-5) is not positions
+
+
+def test_n_history_defaults_to_the_longest_episode_of_the_dataset(tiny_dataset_root):
+    policy = make_tiny_policy(tiny_dataset_root, n_history=None)
+    assert policy.config.n_history == max(EPISODE_LENGTHS)
+    config, _ = tiny_config(tiny_dataset_root, n_history=None)
+    with pytest.raises(ValueError, match="n_history is not set"):
+        config.observation_delta_indices  # noqa: B018 (the property raises)
 
 
 def test_missing_depth_feature_is_named(tmp_path):
@@ -273,7 +309,7 @@ def test_config_rejects_bad_values():
 def test_training_decodes_only_supervised_steps_with_the_same_predictions(tiny_dataset_root):
     policy = make_tiny_policy(tiny_dataset_root).eval()
     batch = history_batch(tiny_dataset_root, policy.config, [0, 1, 7])  # 2, 1 and 0 padded steps
-    supervised = supervised_steps(batch, batch["action"])
+    supervised = supervised_steps(batch)
     assert supervised.sum() == 4
     obs = keyframe_observations(batch, policy.config)
     instruction, instruction_mask = policy._encode_instructions(obs.instructions, obs.rgb.device)
@@ -311,11 +347,15 @@ def test_only_contexts_a_rollout_produces_are_supervised(tiny_dataset_root):
     # Episode 3 has 6 keyframes: windows at keyframes 0..5 of it.
     start = EPISODE_STARTS[3]
     batch = history_batch(tiny_dataset_root, config, list(range(start, start + EPISODE_LENGTHS[3])))
-    supervised = supervised_steps(batch, batch["action"]).tolist()
+    supervised = supervised_steps(batch).tolist()
+    assert batch["action"].shape[1] == 4  # the look-back action, then one target per step
     assert supervised == [
         [False, False, True],  # keyframe 0: the window starts at the episode start
         [False, True, True],  # keyframe 1: keyframes 0 and 1 both see their whole history
-        [False, False, True],  # keyframe 2: no padding; keyframes 0 and 1 are supervised in their own windows
+        # keyframe 2: no padding, yet the window starts at the episode start (the look-back action before it is
+        # padding): a rollout's window at keyframe 2 is the same, so every step is supervised. A whole-episode
+        # sample of an episode as long as the history is such a window.
+        [True, True, True],
         [False, False, True],  # keyframes 3..5: earlier steps of the window see a truncated history
         [False, False, True],
         [False, False, True],
@@ -398,10 +438,17 @@ def test_measure_compute_times_each_part_of_every_rollout_step(tiny_dataset_root
         assert set(parts) == {"encoder", "transformer", "attention", "heads", "decoder"}
         assert 0 < parts["attention"] < parts["transformer"] and 0 < parts["decoder"] < parts["heads"]
     attention = torch.nn.functional.scaled_dot_product_attention
-    alone = measure.kernels_alone_ms(policy, single_step(batch, 2), repeats=3)
+    observation = single_step(batch, 2)
+    alone = measure.kernels_alone_ms(policy, lambda: policy.select_action(observation), repeats=3)
     assert set(alone) == {"convolutions", "attention"} and all(ms > 0 for ms in alone.values())
     assert torch.nn.functional.scaled_dot_product_attention is attention  # put back
     assert not any(module._forward_hooks for module in policy.modules())
+    # A training step's floor: the same kernels with their backward passes, each alone.
+    policy.train()
+    training = measure.kernels_alone_ms(policy, lambda: policy.forward(batch), repeats=3, backward=True)
+    assert set(training) == {"convolutions", "attention"} and all(ms > 0 for ms in training.values())
+    assert not any(module._forward_hooks for module in policy.modules())
+    assert all(p.grad is None for p in policy.parameters())  # measuring trains nothing
 
 
 FAULTS_OF_REPEATED_BIG_TENSORS = """

@@ -1,7 +1,9 @@
 """Configuration of the HiveFormer policy (Guhur et al., CoRL 2022) for LeRobot 0.6.
 
-Defaults follow the paper's best model (supplement §1): hidden size 64, 8 heads, a history of 6
-keyframes, the instruction as a sequence of frozen CLIP ViT-B/32 token features.
+Defaults follow the paper's best model (supplement §1) and the authors' training: hidden size 64, 8 heads,
+the instruction as a sequence of frozen CLIP ViT-B/32 token features with learned position embeddings,
+a history as long as the training dataset's longest episode, whole episodes as training samples, each
+with an instruction drawn among its paraphrases, and a CNN stem that sees RGB and the gripper mark.
 """
 
 from dataclasses import dataclass, field
@@ -39,7 +41,14 @@ class HiveformerConfig(PreTrainedConfig):
     """
 
     # Number of keyframes the transformer sees: the current one and up to n_history - 1 before it.
-    n_history: int = 6
+    # None (default): the training dataset's longest episode, so that a window holds a whole episode,
+    # as the authors train; `lerobot-train` fills it in when it opens the dataset.
+    n_history: int | None = None
+    # Training samples: True (default) makes every sample a whole episode (the window that ends at the
+    # episode's last keyframe, every keyframe supervised once), as the authors' code; the sampler still
+    # draws frames, so an episode is drawn as often as it has keyframes. Applies to the episodes that fit
+    # in the history; False, or a longer episode, gives LeRobot's window ending at each drawn frame.
+    whole_episodes: bool = True
     # Ablation: False makes every keyframe attend to itself and the instruction only (no history).
     use_history: bool = True
 
@@ -62,6 +71,10 @@ class HiveformerConfig(PreTrainedConfig):
 
     # Ablation: False adds no learned patch-position embeddings (E_T^x, E_T^y) to the visual tokens.
     use_position_embeddings: bool = True
+    # True feeds the CNN stem the world xyz of every pixel besides RGB and the gripper mark (7 channels,
+    # this plugin's input before the authors' 4 became the default); either way every visual token also
+    # gets its patch's mean point.
+    stem_point_cloud: bool = False
     # Softmax temperature of the per-pixel attention over all pixels of all cameras.
     attention_temperature: float = 0.1
     # Training augmentation, as in the authors' code: every sample's images (RGB, point cloud and
@@ -85,6 +98,13 @@ class HiveformerConfig(PreTrainedConfig):
     text_encoder_path: str | None = None
     # Ablation: False averages the instruction's token features into a single token.
     instruction_as_sequence: bool = True
+    # Learned position embeddings on the instruction tokens, as the authors': token order is what tells
+    # "red, then blue" from "blue, then red".
+    instruction_position_embeddings: bool = True
+    # Training only: each sample's instruction is drawn among the paraphrases the dataset lists for its
+    # task (`meta/task_paraphrases.json`: task string -> instructions that mean the same), as the authors
+    # draw among a variation's instructions. Not with one_hot, whose codes name strings, not meanings.
+    sample_paraphrases: bool = True
     # Instructions known to the "one_hot" encoder; filled from the training dataset's tasks when empty.
     # Unknown instructions share one extra code.
     instruction_vocabulary: list[str] = field(default_factory=list)
@@ -116,7 +136,7 @@ class HiveformerConfig(PreTrainedConfig):
 
     def __post_init__(self):
         super().__post_init__()
-        if self.n_history < 1:
+        if self.n_history is not None and self.n_history < 1:
             raise ValueError(f"n_history must be >= 1, got {self.n_history}.")
         if self.hidden_dim < 1 or self.hidden_dim % self.num_heads != 0:
             raise ValueError(
@@ -227,7 +247,14 @@ class HiveformerConfig(PreTrainedConfig):
     @property
     def history_length(self) -> int:
         """Keyframes per training sample and per rollout window."""
-        return self.n_history if self.use_history else 1
+        if not self.use_history:
+            return 1
+        if self.n_history is None:
+            raise ValueError(
+                "n_history is not set: lerobot-train sets it to the training dataset's longest episode; "
+                "elsewhere pass --policy.n_history=N (the longest episode's keyframes)."
+            )
+        return self.n_history
 
     @property
     def observation_delta_indices(self) -> list[int]:
@@ -235,8 +262,10 @@ class HiveformerConfig(PreTrainedConfig):
 
     @property
     def action_delta_indices(self) -> list[int]:
-        # One target per history step: every step of the window is supervised (teacher forcing).
-        return list(range(1 - self.history_length, 1))
+        # One target per history step (teacher forcing), and one action before the window, never a target:
+        # its padding flag tells whether the window starts at the episode start (see `supervised_steps`),
+        # which a window exactly as long as its episode cannot tell from its own padding.
+        return list(range(-self.history_length, 1))
 
     @property
     def reward_delta_indices(self) -> None:

@@ -1,29 +1,40 @@
-"""The one place where this plugin changes how LeRobot reads a dataset: keyframe history decoded once.
+"""Where this plugin changes how LeRobot reads a dataset for a HiveFormer training: two reader methods.
 
-LeRobot 0.6's `DatasetReader._query_hf_dataset` reads each key with history as `hf_dataset[key][rows]`.
-With `datasets` >= 4.4 and LeRobot's custom transform that cannot take the column fast path: it
-decodes *every* column of the history rows (every PNG of every camera), once per key, so HiveFormer's
-11 history keys decode each image 11 times (LeRobot issues #2895 and #2315). `HistoryOnceReader`
-overrides that one method: the history rows are decoded once, with only the columns that have
-history. Its items equal the stock reader's (same keys, same tensors; tested).
+1. History decoded once. LeRobot 0.6's `DatasetReader._query_hf_dataset` reads each key with history as
+   `hf_dataset[key][rows]`. With `datasets` >= 4.4 and LeRobot's custom transform that cannot take the
+   column fast path: it decodes *every* column of the history rows (every PNG of every camera), once per
+   key, so HiveFormer's 11 history keys decode each image 11 times (LeRobot issues #2895 and #2315).
+   `HistoryOnceReader` overrides that one method: the history rows are decoded once, with only the
+   columns that have history. Its items equal the stock reader's (same keys, same tensors; tested).
+2. Samples as the authors train. `TrainingReader.get_item` turns the frame LeRobot's sampler drew into
+   its whole episode (the window ending at the episode's last keyframe, when the episode fits in the
+   history: every keyframe supervised once per sample, none ~n times as often as the last) and, where
+   the dataset lists paraphrases of its tasks (`meta/task_paraphrases.json`), replaces the sample's
+   instruction by one drawn among them.
 
-It is applied only to the datasets HiveFormer trains on. `install()` (run when LeRobot imports the
-plugin) wraps `lerobot.datasets.factory.make_dataset`, which `lerobot-train` calls: when the training
-configuration's policy is HiveFormer, the dataset it returns reads with `HistoryOnceReader`; any other
-dataset of the process (an ACT run, a dataset opened by hand) keeps LeRobot's reader.
-`use_history_once(dataset)` does the same for a dataset built by hand. Version-checked: with a LeRobot
-other than 0.6.x nothing is replaced and a warning says so.
+Both apply only to the datasets HiveFormer trains on. `install()` (run when LeRobot imports the plugin)
+wraps `lerobot.datasets.factory.make_dataset`, which `lerobot-train` calls: when the training
+configuration's policy is HiveFormer, it first sets the policy's `n_history` to the dataset's longest
+episode where none is given, and the dataset it returns reads with `TrainingReader`; any other dataset of
+the process (an ACT run, a dataset opened by hand) keeps LeRobot's reader. `use_history_once(dataset)`
+applies the first method alone to a dataset built by hand. Version-checked: with a LeRobot other than
+0.6.x nothing is replaced and a warning says so.
 """
 
 import functools
 import importlib.metadata
+import json
 import warnings
+from pathlib import Path
 
+import numpy as np
 import torch
 from lerobot.datasets.dataset_reader import DatasetReader
 
-SUPPORTED_LEROBOT = "0.6."  # the minor version whose `_query_hf_dataset` this overrides
+SUPPORTED_LEROBOT = "0.6."  # the minor version whose `_query_hf_dataset` and `get_item` this overrides
 POLICY_TYPE = "hiveformer"
+# Task string -> the instructions that say the same thing (itself included); written by the dataset's maker.
+PARAPHRASES_FILE = "meta/task_paraphrases.json"
 
 
 class HistoryOnceReader(DatasetReader):
@@ -54,6 +65,82 @@ class HistoryOnceReader(DatasetReader):
         return views[columns]
 
 
+class TrainingReader(HistoryOnceReader):
+    """HiveFormer's training reader: whole-episode samples and paraphrased instructions (module docstring).
+
+    Configured by `configure_training`; without it, it reads as `HistoryOnceReader`.
+    """
+
+    whole_episodes = False
+    paraphrases: dict[str, list[str]] = {}
+
+    def get_item(self, idx) -> dict:
+        if self.whole_episodes:
+            idx = int(self._episode_last_rows()[idx])
+        item = super().get_item(idx)
+        alternatives = self.paraphrases.get(item["task"])
+        if alternatives:
+            item["task"] = alternatives[int(torch.randint(len(alternatives), ()))]
+        return item
+
+    def _episode_last_rows(self) -> np.ndarray:
+        """For every row, the row of its episode's last frame where the episode fits in the history
+        window, else the row itself. Built once, from the episode-index column only."""
+        cached = self.__dict__.get("_last_rows")
+        if cached is not None and cached[0] is self.hf_dataset:
+            return cached[1]
+        observed = [min(deltas) for key, deltas in (self.delta_indices or {}).items() if key.startswith("observation.")]
+        window = 1 - min(observed, default=0)  # observation steps (the action has one look-back step more)
+        episodes = np.asarray(self.hf_dataset.with_format(None)["episode_index"])
+        rows = np.arange(len(episodes))
+        last_rows = rows.copy()
+        if len(episodes):
+            boundaries = np.flatnonzero(np.diff(episodes)) + 1
+            for start, stop in zip(np.r_[0, boundaries], np.r_[boundaries, len(episodes)], strict=True):
+                if stop - start <= window:
+                    last_rows[start:stop] = stop - 1
+        self.__dict__["_last_rows"] = (self.hf_dataset, last_rows)
+        return last_rows
+
+
+def read_paraphrases(root) -> dict[str, list[str]]:
+    """The dataset's `meta/task_paraphrases.json` ({} when it has none)."""
+    path = Path(root) / PARAPHRASES_FILE
+    if not path.is_file():
+        return {}
+    paraphrases = json.loads(path.read_text(encoding="utf-8"))
+    if not isinstance(paraphrases, dict) or not all(
+        isinstance(v, list) and all(isinstance(x, str) for x in v) for v in paraphrases.values()
+    ):
+        raise ValueError(f"{path}: expected an object mapping each task string to a list of instructions.")
+    return paraphrases
+
+
+def configure_training(dataset, policy_config) -> bool:
+    """Make `dataset` read with `TrainingReader` as `policy_config` (a HiveformerConfig) asks; False if it cannot."""
+    if not use_history_once(dataset):
+        return False
+    reader = dataset.reader
+    reader.__class__ = TrainingReader
+    reader.whole_episodes = bool(policy_config.whole_episodes)
+    use_paraphrases = policy_config.sample_paraphrases and policy_config.text_encoder != "one_hot"
+    reader.paraphrases = read_paraphrases(dataset.root) if use_paraphrases else {}
+    return True
+
+
+def fill_history_from_dataset(cfg) -> None:
+    """`n_history` None -> the longest episode of the training dataset (its metadata only)."""
+    policy = cfg.policy
+    if policy.n_history is not None or not policy.use_history:
+        return
+    from lerobot.datasets.lerobot_dataset import LeRobotDatasetMetadata
+
+    from .modeling_hiveformer import longest_episode
+
+    meta = LeRobotDatasetMetadata(cfg.dataset.repo_id, root=cfg.dataset.root, revision=cfg.dataset.revision)
+    policy.n_history = longest_episode(meta)
+
+
 def supported() -> bool:
     return importlib.metadata.version("lerobot").startswith(SUPPORTED_LEROBOT)
 
@@ -61,14 +148,15 @@ def supported() -> bool:
 def use_history_once(dataset) -> bool:
     """Make `dataset` (a `LeRobotDataset`) read its history with `HistoryOnceReader`; False if it cannot."""
     reader = getattr(dataset, "reader", None)
-    if not supported() or reader is None or type(reader) not in (DatasetReader, HistoryOnceReader):
+    if not supported() or reader is None or type(reader) not in (DatasetReader, HistoryOnceReader, TrainingReader):
         return False
-    reader.__class__ = HistoryOnceReader
+    if type(reader) is DatasetReader:
+        reader.__class__ = HistoryOnceReader
     return True
 
 
 def install() -> bool:
-    """Wrap `make_dataset` so that HiveFormer trainings read with `HistoryOnceReader` (LeRobot 0.6.x only)."""
+    """Wrap `make_dataset` so that HiveFormer trainings read with `TrainingReader` (LeRobot 0.6.x only)."""
     from lerobot.datasets import factory
 
     if getattr(factory.make_dataset, "hiveformer_history_once", False):
@@ -84,9 +172,12 @@ def install() -> bool:
 
     @functools.wraps(stock)
     def make_dataset(cfg):
+        hiveformer = getattr(getattr(cfg, "policy", None), "type", None) == POLICY_TYPE
+        if hiveformer:
+            fill_history_from_dataset(cfg)
         dataset = stock(cfg)
-        if getattr(getattr(cfg, "policy", None), "type", None) == POLICY_TYPE:
-            use_history_once(dataset)
+        if hiveformer:
+            configure_training(dataset, cfg.policy)
         return dataset
 
     make_dataset.hiveformer_history_once = True

@@ -561,11 +561,13 @@ class HiveformerModel(nn.Module):
         height, width = config.image_shape
         self.grid = (height // ENCODER_STRIDE, width // ENCODER_STRIDE)
 
-        # RGB (3) + point cloud (3) + gripper mark (1).
-        self.encoder = UNetEncoder(in_channels=7)
+        # RGB (3) + gripper mark (1), as the authors; + the point cloud (3) with stem_point_cloud.
+        self.encoder = UNetEncoder(in_channels=7 if config.stem_point_cloud else 4)
         self.patch_to_token = nn.Linear(ENCODER_CHANNELS + 3, dim)
         self.gripper_to_token = nn.Linear(GRIPPER_STATE_DIM, dim)
         self.instruction_to_token = nn.Linear(instruction_feature_dim, dim)
+        if config.instruction_position_embeddings:
+            self.instruction_position_embedding = nn.Embedding(CLIP_CONTEXT_LENGTH, dim)
         self.step_embedding = nn.Embedding(config.history_length, dim)
         # One embedding per camera, plus one for the gripper-state token.
         self.source_embedding = nn.Embedding(self.num_cameras + 1, dim)
@@ -599,10 +601,10 @@ class HiveformerModel(nn.Module):
         batch, steps, cameras = obs.rgb.shape[:3]
         mark = take_steps(obs.mark, encode)  # (M, C, 1, H, W)
         points = take_steps(obs.points, encode)  # (M, C, 3, H, W), already 0 where there is no depth
-        # Built channels-last, (M, C, H, W, 7), and viewed as (M*C, 7, H, W): oneDNN's convolutions with
+        # Built channels-last, (M, C, H, W, 4 or 7), viewed as (M*C, 4 or 7, H, W): oneDNN's convolutions with
         # few channels run much faster on that layout than on NCHW (which they reorder on every call),
         # and every encoder and decoder feature map inherits it.
-        channels = [take_steps(obs.rgb, encode) * 2 - 1, points, mark]
+        channels = [take_steps(obs.rgb, encode) * 2 - 1, *([points] if self.config.stem_point_cloud else []), mark]
         images = torch.cat([x.movedim(-3, -1) for x in channels], dim=-1).flatten(0, 1).permute(0, 3, 1, 2)
         skips = self.encoder(images)
         bottleneck = skips[-1]  # (M*C, 16, h, w)
@@ -648,6 +650,9 @@ class HiveformerModel(nn.Module):
         ordinal = (step_valid.long().cumsum(1) - 1).clamp_min(0)
         x = tokens + self.step_embedding(ordinal).unsqueeze(2)
         instruction_tokens = self.instruction_to_token(instruction)
+        if self.config.instruction_position_embeddings:
+            length = instruction_tokens.shape[1]
+            instruction_tokens = instruction_tokens + self.instruction_position_embedding.weight[:length]
 
         def mask(query_steps: slice) -> Tensor | None:
             return block_causal_mask(
@@ -766,6 +771,10 @@ class HiveformerPolicy(PreTrainedPolicy):
                     "tasks from."
                 )
             config.instruction_vocabulary = sorted(str(task) for task in dataset_meta.tasks.index)
+        if config.n_history is None and config.use_history:
+            if dataset_meta is None:
+                raise ValueError("n_history is not set: pass it, or a dataset whose longest episode sets it.")
+            config.n_history = longest_episode(dataset_meta)
         self.config = config
         # Kept outside the module tree: the frozen encoder is neither trained nor saved with the policy.
         self.instruction_encoder: InstructionEncoder = make_instruction_encoder(config)
@@ -807,10 +816,8 @@ class HiveformerPolicy(PreTrainedPolicy):
 
     def forward(self, batch: dict) -> tuple[Tensor, dict]:
         """Teacher-forced losses over every non-padded step of the history window."""
-        target = batch[ACTION]  # (B, T, 8)
-        if target.dim() == 2:
-            target = target.unsqueeze(1)
-        supervised = supervised_steps(batch, target)  # (B, T)
+        supervised = supervised_steps(batch)  # (B, T)
+        target = window_targets(batch)  # (B, T, 8)
         obs = keyframe_observations(batch, self.config)
         config = self.config
         if self.training and (config.augmentation_min_scale, config.augmentation_max_scale) != (1.0, 1.0):
@@ -861,24 +868,48 @@ class HiveformerPolicy(PreTrainedPolicy):
         return self.predict_action_chunk(batch)[:, 0]
 
 
-def supervised_steps(batch: dict, target: Tensor) -> Tensor:
+def longest_episode(dataset_meta) -> int:
+    """Frames of the longest episode of a `LeRobotDatasetMetadata`: the history a whole episode needs."""
+    return int(max(dataset_meta.episodes["length"]))
+
+
+def window_steps(batch: dict) -> int:
+    """T: the observation steps of a training batch (1 without history)."""
+    state = batch[OBS_STATE]
+    return state.shape[1] if state.dim() == 3 else 1
+
+
+def window_targets(batch: dict) -> Tensor:
+    """(B, T, 8): the action target of each observation step (the look-back action left out)."""
+    action = batch[ACTION]
+    return (action if action.dim() == 3 else action.unsqueeze(1))[:, -window_steps(batch) :]
+
+
+def supervised_steps(batch: dict) -> Tensor:
     """(B, T) bool: the steps of each window whose context is one a rollout produces.
 
     A rollout's window holds the episode from its first keyframe, or the last `T` keyframes. A training
-    window that starts at the episode start (its first step is padding) gives every real step exactly its
-    rollout context, so all of them are supervised. A window that starts later gives only its last step
-    the rollout context; its earlier steps see a truncated history that no rollout produces, so they are
-    not supervised (each of them is the last step of its own window).
+    window that starts at the episode start gives every real step exactly its rollout context, so all of
+    them are supervised (a whole-episode sample: every keyframe once). A window that starts later gives
+    only its last step the rollout context; its earlier steps see a truncated history that no rollout
+    produces, so they are not supervised (each of them is the last step of its own window).
+
+    Whether a window starts at the episode start: the look-back action before it (the configuration's
+    `action_delta_indices` start one step before the observations) is padding. Without it (a batch built
+    with as many actions as observations), whether the window's first step is padding.
     """
-    steps = target.shape[1]
+    steps = window_steps(batch)
     pad = batch.get(OBS_STATE + "_is_pad")
     if pad is None or pad.dim() != 2:
-        real = torch.ones(target.shape[:2], dtype=torch.bool, device=target.device)
+        real = torch.ones(batch[OBS_STATE].shape[0], steps, dtype=torch.bool, device=batch[OBS_STATE].device)
     else:
         real = ~pad.bool()
+    starts_at_episode_start = ~real[:, :1]  # (B, 1): padding before the first real step
     action_pad = batch.get(ACTION + "_is_pad")
     if action_pad is not None:
-        real &= ~(action_pad.bool() if action_pad.dim() == 2 else action_pad.bool().unsqueeze(1))
-    starts_at_episode_start = ~real[:, :1]  # (B, 1): padding before the first real step
-    last = torch.arange(steps, device=target.device) == steps - 1
+        action_pad = action_pad.bool() if action_pad.dim() == 2 else action_pad.bool().unsqueeze(1)
+        if action_pad.shape[1] == steps + 1:
+            starts_at_episode_start = action_pad[:, :1]
+        real &= ~action_pad[:, -steps:]
+    last = torch.arange(steps, device=real.device) == steps - 1
     return real & (starts_at_episode_start | last)
