@@ -4,6 +4,7 @@ import json
 
 import pytest
 
+from demo_factory.convert.converter import read_dataset_provenance
 from demo_factory.tools.reference_run import main
 
 
@@ -46,11 +47,38 @@ def test_tower_reference_run_takes_its_history_from_the_longest_episode_and_plot
     assert json.loads((out / "eval" / "results.json").read_text())["task"] == "tower"
 
 
+@pytest.mark.slow
+def test_unseen_reference_run_trains_on_paper_train_ids_and_curves_the_unseen_split(tmp_path):
+    out = tmp_path / "unseen"
+    arguments = ["--unseen", "--out", str(out), "--train-variations", "2", "--episodes-per-variation", "1",
+                 "--steps", "2", "--curve", "2", "--batch-size", "2", "--eval-episodes", "1", "--workers", "2",
+                 "--image-size", "32"]
+    assert main(arguments) == 0
+    summary = json.loads((out / "reference_run.json").read_text())
+    configuration = summary["configuration"]
+    assert configuration["variations"] == ["0", "1"] and configuration["text_encoder"] == "minilm"
+    splits = summary["results"]["splits"]
+    assert {"train", "test_unseen_synthetic", "test_unseen_corrupted", "test_unseen_human"} <= set(splits)
+    # The test episodes are those of the variations the authors' human-written sentences name: 51.
+    human = read_dataset_provenance(out / "dataset" / "test_unseen_human")[1]["episodes"]
+    assert len({e["variation_id"] for e in human}) == 51
+    assert [c["step"] for c in summary["learning_curve"]] == [1, 2]
+    assert all(0.0 <= c["test_unseen_synthetic_success_rate"] <= 1.0 for c in summary["learning_curve"])
+    earlier = json.loads((out / "curve" / "000001" / "results.json").read_text())["splits"]
+    assert set(earlier) == {"train", "test_unseen_synthetic"}
+    # The policy trained with every synthetic instruction of its variations: the dataset lists them.
+    assert (out / "dataset" / "train" / "meta" / "task_paraphrases.json").exists()
+
+
 def test_curve_must_divide_the_steps():
     with pytest.raises(SystemExit):
         main(["--steps", "10", "--curve", "3"])
     with pytest.raises(SystemExit):
         main(["--policy", "act", "--task", "tower"])
+    for wrong in (["--unseen", "--task", "tower"], ["--unseen", "--variation", "3"], ["--train-variations", "5"],
+                  ["--unseen", "--train-variations", "101"]):
+        with pytest.raises(SystemExit):
+            main(wrong)
 
 
 def test_act_reference_trains_with_the_chunk_its_shortest_episode_holds(tmp_path):
