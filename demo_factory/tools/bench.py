@@ -287,8 +287,63 @@ def _history_items_per_second(root: Path, n_history: int, items: int) -> dict:
             "speedup": rates["plugin"] / rates["stock"]}
 
 
+def _measure_compute():
+    """The plugin's measurement script as a module (it is a script beside the package, not part of it)."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("measure_compute", HIVEFORMER_MEASURE)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def train_step_against_kernel_floor(root: Path, steps: int, repeats: int = 10) -> dict:
+    """One reference-configuration training step (HiveFormer as `lerobot-train` builds it on `root`: whole
+    episodes, batch 16, one-hot instructions, no attention dropout; forward, backward, AdamW step; the
+    machine's torch threads) against its kernel floor: each of the step's convolutions and attention calls
+    re-run alone with its backward pass (`measure_compute.kernels_alone_ms`, as the inference floor)."""
+    from types import SimpleNamespace
+
+    import torch
+    from lerobot.configs.default import DatasetConfig
+    from lerobot.datasets import factory
+    from lerobot.policies.factory import make_policy, make_pre_post_processors
+    from lerobot_policy_hiveformer import HiveformerConfig
+
+    from demo_factory.tools.reference_run import REFERENCE_BATCH_SIZE, REFERENCE_TEXT_ENCODER
+
+    torch.manual_seed(0)
+    config = HiveformerConfig(device="cpu", text_encoder=REFERENCE_TEXT_ENCODER, attention_dropout=0.0)
+    cfg = SimpleNamespace(dataset=DatasetConfig(repo_id="bench/history", root=str(root)), policy=config,
+                          trainable_config=config, tolerance_s=1e-4, num_workers=0)
+    dataset = factory.make_dataset(cfg)
+    policy = make_policy(config, ds_meta=dataset.meta)
+    preprocessor, _ = make_pre_post_processors(config, dataset_stats=dataset.meta.stats)
+    loader = torch.utils.data.DataLoader(dataset, batch_size=REFERENCE_BATCH_SIZE, shuffle=True,
+                                         generator=torch.Generator().manual_seed(0))
+    batch = preprocessor(next(iter(loader)))
+    optimizer = torch.optim.AdamW(policy.get_optim_params(), lr=config.optimizer_lr)
+    policy.train()
+    durations = []
+    for _ in range(steps + 1):  # the first step also encodes the instructions and warms the allocator
+        began = time.perf_counter()
+        loss, _ = policy.forward(batch)
+        optimizer.zero_grad()
+        loss.backward()
+        optimizer.step()
+        durations.append(time.perf_counter() - began)
+    step_ms = 1000 * float(np.median(durations[1:]))
+    floor = _measure_compute().kernels_alone_ms(policy, lambda: policy.forward(batch), repeats, backward=True)
+    floor_ms = sum(floor.values())
+    return {"batch_size": REFERENCE_BATCH_SIZE, "n_history": config.n_history,
+            "keyframes_in_batch": int((~batch["action_is_pad"]).sum()), "threads": torch.get_num_threads(),
+            "train_step_ms": round(step_ms, 1), "kernel_floor_ms": floor, "kernel_floor_total_ms": round(floor_ms, 1),
+            "step_over_floor": round(step_ms / floor_ms, 2)}
+
+
 def bench_hiveformer_training(episodes: int, train_steps: int) -> dict:
-    """HiveFormer's data path and a real `lerobot-train` run in the reference run's CPU configuration.
+    """HiveFormer's data path, its training step against its kernel floor and a real `lerobot-train` run in
+    the reference run's CPU configuration.
 
     Items/s are measured on 128x128 push_buttons keyframe datasets (3 cameras, history 6, every
     observation key and the action), stock vs the plugin's reader. `updt_s` / `data_s` come from
@@ -307,6 +362,8 @@ def bench_hiveformer_training(episodes: int, train_steps: int) -> dict:
             convert(ConvertOptions(inputs=[raw], out=root, repo_id="bench/history", val_ratio=0.0, progress=False),
                     log=lambda _: None)
         figures["history_reading_128px"] = _history_items_per_second(Path(folder) / "converted128" / "train", 6, 120)
+        figures["train_step_against_kernel_floor"] = train_step_against_kernel_floor(
+            Path(folder) / f"converted{REFERENCE_IMAGE_SIZE}" / "train", steps=min(train_steps, 10))
         output_dir = Path(folder) / "train"
         command = train_command(Path(folder) / f"converted{REFERENCE_IMAGE_SIZE}" / "train", output_dir,
                                 steps=train_steps, log_freq=5)

@@ -106,38 +106,63 @@ def timed_parts(policy) -> list[dict[str, float]]:
     return steps
 
 
-def kernels_alone_ms(policy, observation: dict, repeats: int = 50) -> dict[str, float]:
-    """Milliseconds of one rollout step's convolutions and attention calls, each re-run alone (median of
-    `repeats`) on the inputs it had in the step; the policy should hold a full history already."""
+def kernels_alone_ms(policy, step, repeats: int = 50, backward: bool = False) -> dict[str, float]:
+    """Milliseconds of the convolutions and attention calls of `policy` that `step()` makes, each re-run alone (median
+    of `repeats`) on the inputs it had: the time those kernels need with nothing else, below which the step
+    cannot go. With `backward`, each call is timed with its backward pass too (the gradients of its inputs
+    that needed them and of its weights), as in a training step.
+    """
     calls = []
 
     def record(module, inputs, _output):
-        calls.append(("convolutions", functools.partial(module, *inputs)))
+        calls.append(("convolutions", module, inputs, {}))
 
     hooks = [m.register_forward_hook(record) for m in policy.modules() if isinstance(m, torch.nn.Conv2d)]
     attention = F.scaled_dot_product_attention
 
     def recorded(*args, **kwargs):
-        calls.append(("attention", functools.partial(attention, *args, **kwargs)))
+        calls.append(("attention", attention, args, kwargs))
         return attention(*args, **kwargs)
 
     F.scaled_dot_product_attention = recorded
     try:
-        policy.select_action(observation)
+        step()
     finally:
         F.scaled_dot_product_attention = attention
         for hook in hooks:
             hook.remove()
     totals = {"convolutions": 0.0, "attention": 0.0}
-    with torch.inference_mode():
-        for kind, call in calls:
-            durations = []
-            for _ in range(repeats):
-                start = time.perf_counter()
-                call()
-                durations.append(time.perf_counter() - start)
-            totals[kind] += 1000 * float(np.median(durations))
+    for kind, function, args, kwargs in calls:
+        call = _backward_call(function, args, kwargs) if backward else _inference_call(function, args, kwargs)
+        durations = []
+        for _ in range(repeats):
+            start = time.perf_counter()
+            call()
+            durations.append(time.perf_counter() - start)
+        totals[kind] += 1000 * float(np.median(durations))
     return {kind: round(ms, 2) for kind, ms in totals.items()}
+
+
+def _inference_call(function, args, kwargs):
+    def call():
+        with torch.inference_mode():
+            function(*args, **kwargs)
+
+    return call
+
+
+def _backward_call(function, args, kwargs):
+    """Forward and backward of one recorded call, on detached copies of its inputs that need the same grads."""
+    args = [a.detach().requires_grad_(a.requires_grad) if isinstance(a, torch.Tensor) else a for a in args]
+    wrt = [a for a in args if isinstance(a, torch.Tensor) and a.requires_grad]
+    if isinstance(function, torch.nn.Module):
+        wrt += [p for p in function.parameters() if p.requires_grad]
+
+    def call():
+        output = function(*args, **kwargs)
+        torch.autograd.grad(output, wrt, torch.ones_like(output))
+
+    return call
 
 
 def main() -> None:
@@ -168,6 +193,7 @@ def main() -> None:
             device="cpu",
             text_encoder="clip",
             text_encoder_path=clip_dir,
+            n_history=6,
             input_features=inputs,
             output_features=outputs,
         )
@@ -205,7 +231,8 @@ def main() -> None:
     inference_ms = 1000 * float(np.median(durations[config.n_history :]))
     part_ms = {name: round(1000 * float(np.median([step.get(name, 0.0) for step in steps[config.n_history :]])), 2)
                for name in ("encoder", "transformer", "attention", "heads", "decoder")}
-    kernels_ms = kernels_alone_ms(policy, observation_batch(1, None, args.image_size))
+    rollout_observation = observation_batch(1, None, args.image_size)
+    kernels_ms = kernels_alone_ms(policy, lambda: policy.select_action(rollout_observation))
 
     print(
         json.dumps(

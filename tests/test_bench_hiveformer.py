@@ -1,0 +1,19 @@
+"""The bench's HiveFormer training-step figure: a real step of the reference configuration against the
+kernel floor of the same step."""
+
+from hiveformer_fixtures import EPISODE_LENGTHS, tiny_dataset_root
+
+from demo_factory.tools.bench import train_step_against_kernel_floor
+
+__all__ = ["tiny_dataset_root"]  # the fixture is used by name
+
+
+def test_train_step_is_measured_against_the_floor_of_its_own_kernels(tiny_dataset_root):
+    figures = train_step_against_kernel_floor(tiny_dataset_root, steps=1, repeats=1)
+    assert figures["n_history"] == max(EPISODE_LENGTHS)  # whole episodes, as lerobot-train trains
+    # Every sample a whole episode: at least the shortest episode's keyframes each.
+    assert figures["keyframes_in_batch"] >= figures["batch_size"] * min(EPISODE_LENGTHS)
+    floor = figures["kernel_floor_ms"]
+    assert set(floor) == {"convolutions", "attention"} and all(ms > 0 for ms in floor.values())
+    assert figures["train_step_ms"] > 0
+    assert figures["step_over_floor"] == round(figures["train_step_ms"] / figures["kernel_floor_total_ms"], 2)
