@@ -13,7 +13,8 @@ def test_reference_run_chain_writes_its_results(tmp_path):
     out = tmp_path / "reference"
     arguments = ["--out", str(out), "--variation", "8", "--episodes-per-variation", "2", "--test-episodes", "1",
                  "--steps", "2", "--batch-size", "2", "--eval-episodes", "1", "--workers", "1",
-                 "--image-size", "32", "--text-encoder", "clip_tiny_random", "--seed", "3"]
+                 "--image-size", "32", "--text-encoder", "clip_tiny_random", "--seed", "3",
+                 "--train-arg=--policy.whole_episodes=true"]
     assert main(arguments) == 0
     summary = json.loads((out / "reference_run.json").read_text())
     assert set(summary["stage_seconds"]) == {"generate_train", "generate_test", "convert", "train", "eval"}
@@ -22,6 +23,8 @@ def test_reference_run_chain_writes_its_results(tmp_path):
     checkpoint = out / "train" / "checkpoints" / "last" / "pretrained_model"
     assert (checkpoint / "model.safetensors").exists()
     assert json.loads((checkpoint / "train_config.json").read_text())["seed"] == 3
+    config = json.loads((checkpoint / "config.json").read_text())  # the pinned recipe, but for --train-arg's key
+    assert config["whole_episodes"] is True and config["stem_point_cloud"] is True
     # Run again: every stage is complete, so nothing runs and the same results come back.
     assert main(arguments) == 0
     again = json.loads((out / "reference_run.json").read_text())
@@ -43,6 +46,7 @@ def test_tower_reference_run_takes_its_history_from_the_longest_episode_and_plot
     assert [c["step"] for c in summary["learning_curve"]] == [1, 2]
     assert all(0.0 <= c["success_rate"] <= 1.0 and c["per_variation"] for c in summary["learning_curve"])
     assert (out / "curve" / "000001" / "results.json").exists()
+    assert (out / "learning_curve.png").read_bytes().startswith(b"\x89PNG")
     assert "eval_step_1" in summary["stage_seconds"]
     assert json.loads((out / "eval" / "results.json").read_text())["task"] == "tower"
 
@@ -66,6 +70,7 @@ def test_unseen_reference_run_trains_on_paper_train_ids_and_curves_the_unseen_sp
     assert all(0.0 <= c["test_unseen_synthetic_success_rate"] <= 1.0 for c in summary["learning_curve"])
     earlier = json.loads((out / "curve" / "000001" / "results.json").read_text())["splits"]
     assert set(earlier) == {"train", "test_unseen_synthetic"}
+    assert (out / "learning_curve.png").read_bytes().startswith(b"\x89PNG")
     # The policy trained with every synthetic instruction of its variations: the dataset lists them.
     assert (out / "dataset" / "train" / "meta" / "task_paraphrases.json").exists()
 
@@ -76,7 +81,8 @@ def test_curve_must_divide_the_steps():
     with pytest.raises(SystemExit):
         main(["--policy", "act", "--task", "tower"])
     for wrong in (["--unseen", "--task", "tower"], ["--unseen", "--variation", "3"], ["--train-variations", "5"],
-                  ["--unseen", "--train-variations", "101"]):
+                  ["--unseen", "--train-variations", "101"], ["--train-arg", "policy.whole_episodes"],
+                  ["--policy", "act", "--train-arg=--steps=3"]):
         with pytest.raises(SystemExit):
             main(wrong)
 
@@ -97,3 +103,11 @@ def test_act_reference_trains_with_the_chunk_its_shortest_episode_holds(tmp_path
     assert {"--steps=300", "--batch_size=8", "--save_freq=300", "--policy.pretrained_backbone_weights=null"} <= set(command)
     features = json.loads(next(a for a in command if a.startswith("--policy.input_features=")).split("=", 1)[1])
     assert features["observation.images.wrist"]["shape"] == [3, 64, 64]
+
+
+def test_train_arguments_replace_the_runs_own_setting_of_their_key():
+    from demo_factory.tools.reference_run import with_arguments
+
+    command = ["lerobot-train", "--policy.whole_episodes=false", "--steps=5"]
+    assert with_arguments(command, ["--policy.whole_episodes=true", "--policy.lr=1"]) == [
+        "lerobot-train", "--steps=5", "--policy.whole_episodes=true", "--policy.lr=1"]

@@ -19,7 +19,8 @@ variations 0-99 (every colour of the test variations among them, a few episodes 
 instruction features, the test episodes on the paper's test variations that the authors' human-written
 sentences name, and a learning curve of both the seen and the unseen-synthetic success.
 At the end it prints the results table (also `OUT/eval/results.md`, `results.json`, `results.png`)
-and writes `OUT/reference_run.json` (configuration, stage wall times, success rates).
+and writes `OUT/reference_run.json` (configuration, stage wall times, success rates) and, with a
+learning curve, prints it and plots it to `OUT/learning_curve.png`.
 """
 
 from __future__ import annotations
@@ -111,6 +112,12 @@ def act_train_command(dataset_root: Path, output_dir: Path, steps: int, batch_si
             f"--save_freq={steps}"]
 
 
+def with_arguments(command: list[str], extra: list[str]) -> list[str]:
+    """`command` with each `--KEY=VALUE` of `extra` replacing the command's own `--KEY=...` (or appended)."""
+    keys = {argument.split("=", 1)[0] for argument in extra}
+    return [a for a in command if a.split("=", 1)[0] not in keys] + list(extra)
+
+
 def train_log_timings(log: str) -> dict:
     """Median update and data-loading seconds per step over lerobot-train's log lines (the first, with
     the start-up, left out) and the share of the step spent waiting for data."""
@@ -141,6 +148,30 @@ def learning_curve(train: Path, evaluation: Path, dataset: Path, episodes: int, 
                       "per_variation": {v: r["success_rate"] for v, r in seen["per_variation"].items()},
                       **{f"{split}_success_rate": results[split]["success_rate"] for split in splits[1:]}})
     return curve
+
+
+def plot_learning_curve(path: Path, curve: list[dict], title: str) -> None:
+    """Success at each checkpoint, one line per curve split (seen; with --unseen also unseen synthetic)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    steps = [point["step"] for point in curve]
+    lines = {"seen variations": "success_rate"} | {
+        key.removesuffix("_success_rate").removeprefix("test_").replace("_", " "): key
+        for key in curve[0] if key.startswith("test_") and key.endswith("_success_rate")}
+    figure, axis = plt.subplots(figsize=(5, 3.2), dpi=100)
+    for label, key in lines.items():
+        axis.plot(steps, [100 * point[key] for point in curve], marker="o", label=label)
+    axis.set_ylim(-2, 102)
+    axis.set_xlabel("training step")
+    axis.set_ylabel("closed-loop success (%)")
+    axis.set_title(title)
+    axis.legend()
+    figure.tight_layout()
+    figure.savefig(path, metadata={"Software": None})
+    plt.close(figure)
 
 
 def run(command: list[str], log: Path) -> None:
@@ -204,6 +235,9 @@ def main(argv=None) -> int:
                         f"{UNSEEN['curve']})")
     parser.add_argument("--eval-episodes", type=int, help="evaluation episodes per split (default: 40; ACT: 20)")
     parser.add_argument("--workers", type=int, default=2, help="generation processes")
+    parser.add_argument("--train-arg", action="append", default=[], metavar="--KEY=VALUE",
+                        help="extra lerobot-train argument, repeatable (e.g. --train-arg=--policy.whole_episodes=true); "
+                        "it replaces the run's own setting of the same key")
     parser.add_argument("--seed", type=int, default=TRAIN_SEED, help="lerobot-train's seed: other seeds show how "
                         f"much the result varies with the initial weights and batch order (default: {TRAIN_SEED})")
     args = parser.parse_args(argv)
@@ -212,6 +246,11 @@ def main(argv=None) -> int:
     if args.unseen and (args.policy != "hiveformer" or args.task != "push_buttons" or args.variation):
         parser.error("--unseen is the HiveFormer push_buttons run on the paper's train variations: without --policy, "
                      "--task or --variation")
+    malformed = [a for a in args.train_arg if not (a.startswith("--") and "=" in a)]
+    if malformed:
+        parser.error(f"--train-arg {malformed[0]!r}: expected --KEY=VALUE (a lerobot-train argument)")
+    if args.train_arg and args.policy != "hiveformer":
+        parser.error("--train-arg: HiveFormer runs only")
     if args.train_variations is not None and not (args.unseen and 1 <= args.train_variations <= 100):
         parser.error(f"--train-variations {args.train_variations}: with --unseen, 1 to 100 (the paper's train ids)")
     defaults = {"text_encoder": REFERENCE_TEXT_ENCODER, "curve": 1} | PRESETS[args.policy] | (UNSEEN if args.unseen else {})
@@ -266,6 +305,7 @@ def main(argv=None) -> int:
                                 args.n_history, save_freq=args.steps // args.curve)
         if args.task == "push_buttons" and not args.unseen:
             command += SEEN_RECIPE
+        command = with_arguments(command, args.train_arg)
     stage("train", checkpoint, timings, command + [f"--seed={args.seed}"], out)
     stage("eval", evaluation / "results.json", timings,
           [str(BIN / "demo-factory"), "eval", "--policy.path", str(checkpoint), "--dataset", str(dataset),
@@ -282,6 +322,7 @@ def main(argv=None) -> int:
     (out / "reference_run.json").write_text(json.dumps(summary, indent=2, default=str) + "\n")
     print((evaluation / "results.md").read_text())
     if curve:
+        plot_learning_curve(out / "learning_curve.png", curve, f"{args.task}: HiveFormer, seed {args.seed}")
         unseen = "test_unseen_synthetic_success_rate"
         print("Learning curve (seen variations" + (" / unseen synthetic" if args.unseen else "") + "): " + ", ".join(
             f"step {c['step']}: {100 * c['success_rate']:.1f}" + (f" / {100 * c[unseen]:.1f}" if unseen in c else "")
