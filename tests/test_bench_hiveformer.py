@@ -1,6 +1,7 @@
 """The bench's HiveFormer training-step figure: a real step of the reference configuration against the
 kernel floor of the same step."""
 
+import pytest
 from hiveformer_fixtures import EPISODE_LENGTHS, tiny_dataset_root
 
 from demo_factory.tools.bench import train_step_against_kernel_floor
@@ -16,4 +17,6 @@ def test_train_step_is_measured_against_the_floor_of_its_own_kernels(tiny_datase
     floor = figures["kernel_floor_ms"]
     assert set(floor) == {"convolutions", "attention"} and all(ms > 0 for ms in floor.values())
     assert figures["train_step_ms"] > 0
-    assert figures["step_over_floor"] == round(figures["train_step_ms"] / figures["kernel_floor_total_ms"], 2)
+    # The ratio of the unrounded times; the reported ones are rounded to 0.1 ms.
+    assert figures["step_over_floor"] == pytest.approx(figures["train_step_ms"] / figures["kernel_floor_total_ms"],
+                                                       abs=0.011)

@@ -313,7 +313,10 @@ def test_cli_bad_input_is_one_line_and_exit_2(tmp_path, capsys):
 def test_cli_serves_until_interrupted(tmp_path):
     out = tmp_path / "sub" / "human.jsonl"
     process = subprocess.Popen(
-        [sys.executable, "-c", "import sys; from demo_factory.cli import main; sys.exit(main())",
+        # Ctrl+C handled even where the suite runs in the background (`pytest &`), whose children inherit
+        # SIGINT ignored: a user's interactive terminal never does that.
+        [sys.executable, "-c", "import signal, sys; signal.signal(signal.SIGINT, signal.default_int_handler); "
+         "from demo_factory.cli import main; sys.exit(main())",
          "collect-instructions", "--task", "tower", "--out", str(out), "--port", "0", "--cache", str(tmp_path / "c")],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env={**os.environ, "PYTHONUNBUFFERED": "1"},
     )

@@ -1,6 +1,7 @@
 """A smoke version of the reference run: the whole chain runs and writes its results table."""
 
 import json
+import shutil
 
 import pytest
 
@@ -49,6 +50,21 @@ def test_tower_reference_run_takes_its_history_from_the_longest_episode_and_plot
     assert (out / "learning_curve.png").read_bytes().startswith(b"\x89PNG")
     assert "eval_step_1" in summary["stage_seconds"]
     assert json.loads((out / "eval" / "results.json").read_text())["task"] == "tower"
+
+    # Interrupted after the first checkpoint: the training resumes from it (step 1's weights, optimizer and
+    # data order), saves the last step, and the evaluation runs on that.
+    checkpoints = out / "train" / "checkpoints"
+    first = (checkpoints / "000001" / "pretrained_model" / "model.safetensors").read_bytes()
+    shutil.rmtree(checkpoints / "000002")
+    shutil.rmtree(out / "eval")
+    (checkpoints / "last").unlink()
+    (checkpoints / "last").symlink_to("000001")
+    assert main(arguments) == 0
+    resumed = json.loads((checkpoints / "000002" / "pretrained_model" / "train_config.json").read_text())
+    assert resumed["resume"] is True and resumed["steps"] == 2
+    assert (checkpoints / "000001" / "pretrained_model" / "model.safetensors").read_bytes() == first
+    assert "Start offline training" in (out / "train.log").read_text()
+    assert set(json.loads((out / "reference_run.json").read_text())["stage_seconds"]) == {"train", "eval"}
 
 
 @pytest.mark.slow
@@ -111,3 +127,10 @@ def test_train_arguments_replace_the_runs_own_setting_of_their_key():
     command = ["lerobot-train", "--policy.whole_episodes=false", "--steps=5"]
     assert with_arguments(command, ["--policy.whole_episodes=true", "--policy.lr=1"]) == [
         "lerobot-train", "--steps=5", "--policy.whole_episodes=true", "--policy.lr=1"]
+
+
+def test_checkpoints_are_saved_at_every_curve_point_and_at_most_500_steps_apart():
+    from demo_factory.tools.reference_run import save_interval
+
+    assert save_interval(4500, 3) == 500 and save_interval(1500, 1) == 500 and save_interval(300, 1) == 300
+    assert save_interval(2, 2) == 1 and save_interval(1001, 1) == 143

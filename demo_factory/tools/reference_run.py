@@ -13,7 +13,9 @@ keyframes, tower 25). With `--curve N` the training also saves N - 1 intermediat
 evaluated on the seen variations: a learning curve that tells how far a longer run would go.
 HiveFormer (the default) trains on the keyframe export; ACT on the dense export (20 fps, joint-position
 actions), with the command the converter suggests for it. Every stage writes into its own folder under
---out and is skipped when that folder is complete, so an interrupted run resumes where it stopped.
+--out and is skipped when that folder is complete, so an interrupted run resumes where it stopped; the
+training itself resumes from its last checkpoint (`lerobot-train --resume=true`; one at least every
+500 steps).
 With `--unseen` the run is built to show instructions followed that were never seen: the paper's train
 variations 0-99 (every colour of the test variations among them, a few episodes each), pretrained MiniLM
 instruction features, the test episodes on the paper's test variations that the authors' human-written
@@ -34,6 +36,8 @@ import subprocess
 import sys
 import time
 from pathlib import Path
+
+from lerobot.common.train_utils import get_step_checkpoint_dir
 
 from demo_factory.convert.converter import read_dataset_provenance
 from demo_factory.convert.usage import act_chunk, act_train_args
@@ -74,6 +78,7 @@ CURVE_SPLITS = {False: ("train",), True: ("train", "test_unseen_synthetic")}
 SEEN_RECIPE = ["--policy.whole_episodes=false", "--policy.stem_point_cloud=true",
                "--policy.instruction_position_embeddings=false"]
 DENSE_FPS = 20  # the dense export's control rate (ACT)
+RESUME_EVERY = 500  # training steps between checkpoints at most: what an interrupted run can lose
 TRAIN_SEED = 1000  # lerobot-train's own default
 
 
@@ -112,6 +117,27 @@ def act_train_command(dataset_root: Path, output_dir: Path, steps: int, batch_si
             f"--save_freq={steps}"]
 
 
+def save_interval(steps: int, curve: int) -> int:
+    """Steps between saved checkpoints: every learning-curve point, and between them at most RESUME_EVERY
+    apart so that an interrupted training resumes from a recent one."""
+    interval = steps // curve
+    parts = -(-interval // RESUME_EVERY)
+    while interval % parts:
+        parts += 1
+    return interval // parts
+
+
+def train_stage_command(train: Path, steps: int, fresh: list[str]) -> list[str]:
+    """`fresh` when nothing of the training is saved; else lerobot-train resuming from its last checkpoint
+    (weights, optimizer, step and data order); the run's folder is cleared when it holds no checkpoint."""
+    last = train / "checkpoints" / "last" / "pretrained_model"
+    if last.exists() and not get_step_checkpoint_dir(train, steps, steps).exists():
+        return [fresh[0], f"--config_path={last / 'train_config.json'}", "--resume=true"]
+    if not last.exists():
+        shutil.rmtree(train, ignore_errors=True)
+    return fresh
+
+
 def with_arguments(command: list[str], extra: list[str]) -> list[str]:
     """`command` with each `--KEY=VALUE` of `extra` replacing the command's own `--KEY=...` (or appended)."""
     keys = {argument.split("=", 1)[0] for argument in extra}
@@ -130,10 +156,12 @@ def train_log_timings(log: str) -> dict:
 
 
 def learning_curve(train: Path, evaluation: Path, dataset: Path, episodes: int, timings: dict, out: Path,
-                   splits: tuple[str, ...] = ("train",)) -> list[dict]:
-    """Success on `splits` (the seen variations, the train split, first) at every saved checkpoint: the
-    earlier ones evaluated here (`OUT/curve/<step>/`), the last one taken from the full evaluation."""
-    saved = sorted((p for p in (train / "checkpoints").iterdir() if p.name.isdigit()), key=lambda p: int(p.name))
+                   every: int, splits: tuple[str, ...] = ("train",)) -> list[dict]:
+    """Success on `splits` (the seen variations, the train split, first) at every `every`-th step's
+    checkpoint: the earlier ones evaluated here (`OUT/curve/<step>/`), the last one taken from the full
+    evaluation."""
+    saved = sorted((p for p in (train / "checkpoints").iterdir() if p.name.isdigit() and int(p.name) % every == 0),
+                   key=lambda p: int(p.name))
     curve = []
     for checkpoint in saved:
         folder = evaluation if checkpoint == saved[-1] else out / "curve" / checkpoint.name
@@ -294,25 +322,24 @@ def main(argv=None) -> int:
           [str(BIN / "demo-factory"), "convert", "--in", str(raw), "--out", str(dataset), "--repo-id",
            "local/reference", "--val-ratio", "0", "--no-progress",
            *(["--granularity", "dense", "--action-space", "joints", "--fps", str(DENSE_FPS)] if dense else [])], out)
-    checkpoint = train / "checkpoints" / "last" / "pretrained_model"
-    if not checkpoint.exists():
-        shutil.rmtree(train, ignore_errors=True)
+    checkpoint = get_step_checkpoint_dir(train, args.steps, args.steps) / "pretrained_model"
     if dense:
         command = act_train_command(dataset / "train", train, args.steps, args.batch_size)
     else:
         args.n_history = args.n_history or longest_episode(dataset / "train")
         command = train_command(dataset / "train", train, args.steps, args.batch_size, args.text_encoder,
-                                args.n_history, save_freq=args.steps // args.curve)
+                                args.n_history, save_freq=save_interval(args.steps, args.curve))
         if args.task == "push_buttons" and not args.unseen:
             command += SEEN_RECIPE
         command = with_arguments(command, args.train_arg)
-    stage("train", checkpoint, timings, command + [f"--seed={args.seed}"], out)
+    stage("train", checkpoint, timings, train_stage_command(train, args.steps, command + [f"--seed={args.seed}"]), out)
     stage("eval", evaluation / "results.json", timings,
           [str(BIN / "demo-factory"), "eval", "--policy.path", str(checkpoint), "--dataset", str(dataset),
            "--episodes", str(args.eval_episodes), "--out", str(evaluation), "--overwrite"], out)
 
     results = json.loads((evaluation / "results.json").read_text())
-    curve = (learning_curve(train, evaluation, dataset, args.eval_episodes, timings, out, CURVE_SPLITS[args.unseen])
+    curve = (learning_curve(train, evaluation, dataset, args.eval_episodes, timings, out, args.steps // args.curve,
+                            CURVE_SPLITS[args.unseen])
              if args.curve > 1 else [])
     train_log = out / "train.log"
     summary = {"configuration": vars(args) | {"out": str(out), "variations": variations,
