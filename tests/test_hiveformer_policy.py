@@ -392,6 +392,9 @@ def test_optimiser_preset_is_the_authors(tiny_dataset_root):
     policy = make_tiny_policy(tiny_dataset_root)
     preset = policy.config.get_optimizer_preset()
     assert (preset.lr, preset.weight_decay, preset.grad_clip_norm) == (1e-3, 5e-4, 0.0)
+    optimizer = preset.build(policy.get_optim_params())  # PyTorch's fused AdamW: one kernel, not a loop over tensors
+    assert isinstance(optimizer, torch.optim.AdamW) and optimizer.defaults["fused"] is True
+    assert preset.type == "adamw_fused"
     decayed, plain = policy.get_optim_params()
     assert plain["weight_decay"] == 0.0 and "weight_decay" not in decayed
     norms = (torch.nn.LayerNorm, torch.nn.GroupNorm)

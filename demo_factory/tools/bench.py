@@ -322,7 +322,7 @@ def train_step_against_kernel_floor(root: Path, steps: int, repeats: int = 10) -
     loader = torch.utils.data.DataLoader(dataset, batch_size=REFERENCE_BATCH_SIZE, shuffle=True,
                                          generator=torch.Generator().manual_seed(0))
     batch = preprocessor(next(iter(loader)))
-    optimizer = torch.optim.AdamW(policy.get_optim_params(), lr=config.optimizer_lr)
+    optimizer = config.get_optimizer_preset().build(policy.get_optim_params())  # as lerobot-train builds it
     policy.train()
     durations = []
     for _ in range(steps + 1):  # the first step also encodes the instructions and warms the allocator

@@ -203,7 +203,7 @@ def main() -> None:
     trainable = sum(p.numel() for p in policy.parameters() if p.requires_grad)
     frozen = sum(p.numel() for p in policy.instruction_encoder.text_model.parameters())
 
-    optimizer = torch.optim.AdamW(policy.get_optim_params(), lr=config.optimizer_lr)
+    optimizer = config.get_optimizer_preset().build(policy.get_optim_params())  # as lerobot-train builds it
     batch = observation_batch(args.batch_size, config.n_history, args.image_size)
     policy.train()
     durations, cpu_times = [], []
