@@ -2,9 +2,27 @@
 
 from __future__ import annotations
 
-import pytest
+import os
 
-from demo_factory.generate import job_requests, run_requests
+# The suite runs in one process per core (`-n auto`, pyproject.toml). Each of them, and every command a test
+# starts, gets one OpenMP thread: several processes each spinning a thread per core slow one another down
+# many times over.
+if "PYTEST_XDIST_WORKER" in os.environ:
+    os.environ["OMP_NUM_THREADS"] = "1"
+
+import pytest  # noqa: E402
+
+from demo_factory.generate import job_requests, run_requests  # noqa: E402
+
+# The files that take longest (end-to-end chains), first: each is handed to a process at the start instead of
+# ending the run alone (with `--dist loadfile --no-loadscope-reorder`, files are handed out in this order).
+LONGEST_FIRST = ("test_reference_run_tower.py", "test_reference_run.py", "test_lerobot_tools.py", "test_publish_http.py",
+                 "test_dense.py", "test_evaluate.py", "test_experts.py", "test_ten_tasks.py")
+
+
+def pytest_collection_modifyitems(items):
+    rank = {name: i for i, name in enumerate(LONGEST_FIRST)}
+    items.sort(key=lambda item: rank.get(item.path.name, len(rank)))  # stable: file order otherwise
 
 
 @pytest.fixture(scope="session")

@@ -101,10 +101,10 @@ def test_success_is_false_at_reset_and_after_a_wrong_action(name):
 
 @pytest.mark.slow
 @pytest.mark.parametrize("name", ONE_GOAL)
-def test_expert_succeeds_on_at_least_19_of_20_seeded_episodes(name):
-    outcomes = list(run_requests(job_requests(name, "train", 20, base_seed=0), out_dir=None, workers=2))
+def test_expert_succeeds_on_at_least_9_of_10_seeded_episodes(name):
+    outcomes = list(run_requests(job_requests(name, "train", 10, base_seed=0), out_dir=None, workers=2))
     failures = [(o.request.variation_id, o.request.episode_seed, o.reason) for o in outcomes if not o.kept]
-    assert len(outcomes) == 20 and len(failures) <= 1, failures
+    assert len(outcomes) == 10 and len(failures) <= 1, failures  # (100 episodes: `make bench`, ten_tasks_expert)
 
 
 @pytest.mark.slow

@@ -100,6 +100,16 @@ def train_command(dataset_root: Path, output_dir: Path, steps: int = REFERENCE_S
             "--wandb.enable=false", f"--output_dir={output_dir}"]
 
 
+def hiveformer_run_command(args: argparse.Namespace, dataset_root: Path, output_dir: Path) -> list[str]:
+    """The run's HiveFormer `lerobot-train` command: the reference configuration, `make reference`'s pinned
+    recipe (push_buttons without --unseen), then each --train-arg replacing the setting of its key."""
+    command = train_command(dataset_root, output_dir, args.steps, args.batch_size, args.text_encoder,
+                            args.n_history, save_freq=save_interval(args.steps, args.curve))
+    if args.task == "push_buttons" and not args.unseen:
+        command += SEEN_RECIPE
+    return with_arguments(command, args.train_arg)
+
+
 def act_train_command(dataset_root: Path, output_dir: Path, steps: int, batch_size: int,
                       log_freq: int = 50) -> list[str]:
     """`lerobot-train` of ACT as the converter suggests it for the dense export (its chunk from the shortest
@@ -243,6 +253,10 @@ def main(argv=None) -> int:
                         "unseen-synthetic success; test episodes on the test variations of the authors' human sentences")
     parser.add_argument("--train-variations", type=int, help="with --unseen: how many of the paper's train "
                         f"variations, from id 0 (default: {UNSEEN['train_variations']})")
+    parser.add_argument("--human-instructions", type=Path, metavar="FILE", help="with --unseen: human-written "
+                        "instructions (the authors' annotations.json format or `demo-factory collect-instructions` "
+                        "JSON Lines); one test episode is generated for each test variation they name, and they "
+                        "make the human split (default: the paper authors' 162 sentences, 51 test variations)")
     parser.add_argument("--variation", action="append", help="seen variation id or colour sequence (repeatable; "
                         f"default push_buttons: {', '.join(DEFAULT_VARIATIONS)}, tower: "
                         f"{', '.join(TASK_VARIATIONS['tower'])}; ACT: blue)")
@@ -279,6 +293,9 @@ def main(argv=None) -> int:
         parser.error(f"--train-arg {malformed[0]!r}: expected --KEY=VALUE (a lerobot-train argument)")
     if args.train_arg and args.policy != "hiveformer":
         parser.error("--train-arg: HiveFormer runs only")
+    if args.human_instructions is not None and not (args.unseen and args.human_instructions.is_file()):
+        parser.error(f"--human-instructions {args.human_instructions}: "
+                     + ("not a file" if args.unseen else "only with --unseen"))
     if args.train_variations is not None and not (args.unseen and 1 <= args.train_variations <= 100):
         parser.error(f"--train-variations {args.train_variations}: with --unseen, 1 to 100 (the paper's train ids)")
     defaults = {"text_encoder": REFERENCE_TEXT_ENCODER, "curve": 1} | PRESETS[args.policy] | (UNSEEN if args.unseen else {})
@@ -306,7 +323,7 @@ def main(argv=None) -> int:
                       "--episodes-per-variation", str(args.episodes_per_variation), "--out", str(raw / "train")], out)
     (raw / "train" / ".complete").touch()
     if args.unseen:  # the test variations the authors' human-written sentences name
-        human = shipped_human_instructions(args.task)
+        human = args.human_instructions or shipped_human_instructions(args.task)
         stage("generate_test", raw / "test" / ".complete", timings,
               generate + ["--split", "test", "--variations-from", str(human), "--episodes-per-variation",
                           str(UNSEEN["test_episodes_per_variation"]), "--seed", "1", "--out", str(raw / "test")], out)
@@ -321,17 +338,14 @@ def main(argv=None) -> int:
     stage("convert", dataset / "train", timings,
           [str(BIN / "demo-factory"), "convert", "--in", str(raw), "--out", str(dataset), "--repo-id",
            "local/reference", "--val-ratio", "0", "--no-progress",
+           *(["--human-instructions", str(args.human_instructions)] if args.human_instructions else []),
            *(["--granularity", "dense", "--action-space", "joints", "--fps", str(DENSE_FPS)] if dense else [])], out)
     checkpoint = get_step_checkpoint_dir(train, args.steps, args.steps) / "pretrained_model"
     if dense:
         command = act_train_command(dataset / "train", train, args.steps, args.batch_size)
     else:
         args.n_history = args.n_history or longest_episode(dataset / "train")
-        command = train_command(dataset / "train", train, args.steps, args.batch_size, args.text_encoder,
-                                args.n_history, save_freq=save_interval(args.steps, args.curve))
-        if args.task == "push_buttons" and not args.unseen:
-            command += SEEN_RECIPE
-        command = with_arguments(command, args.train_arg)
+        command = hiveformer_run_command(args, dataset / "train", train)
     stage("train", checkpoint, timings, train_stage_command(train, args.steps, command + [f"--seed={args.seed}"]), out)
     stage("eval", evaluation / "results.json", timings,
           [str(BIN / "demo-factory"), "eval", "--policy.path", str(checkpoint), "--dataset", str(dataset),
