@@ -65,6 +65,7 @@ def test_accelerate_cpu_flag_alone_starts_a_single_process(tmp_path):
 
 
 @pytest.mark.slow
+@pytest.mark.timeout(1800)  # 45 s on an idle fast machine; over 600 s beside the suite's other chains on a slow one
 def test_accelerate_launch_trains_hiveformer_in_two_processes(converted_push_buttons, tmp_path):
     """`accelerate launch --multi_gpu --num_processes 2 lerobot-train ... --policy.device=cpu`: Accelerate's
     torchrun launcher starts two ranks; lerobot-train's Accelerator(cpu=True) joins them with gloo (DDP)."""
@@ -79,7 +80,7 @@ def test_accelerate_launch_trains_hiveformer_in_two_processes(converted_push_but
         *train_arguments(converted_push_buttons / "train", "me/push_buttons_train", output_dir, "one_hot"),
     ]
     # An HF_HOME of its own: no accelerate default_config.yaml of the machine's takes part.
-    result = run(command, env={**OFFLINE, "HF_HOME": str(tmp_path / "hf_home")})
+    result = run(command, env={**OFFLINE, "HF_HOME": str(tmp_path / "hf_home")}, timeout=1700)
     log = result.stdout + result.stderr
     assert result.returncode == 0, log[-4000:]
     assert "Effective batch size: 2 x 2 = 4" in log and "step:2 " in log
