@@ -329,13 +329,16 @@ def test_gradients_reach_every_feature_map_channels_last(tiny_dataset_root):
     policy = make_tiny_policy(tiny_dataset_root).train()
     batch = history_batch(tiny_dataset_root, policy.config, [0, 1, 7])  # a selection: 4 of 6 real steps
     layouts = {}
+
+    def record_gradient_layout(name):  # on the output tensor: module backward hooks refuse in-place LeakyReLU
+        def hook(module, inputs, output):
+            output.register_hook(lambda grad: layouts.__setitem__(
+                name, grad.is_contiguous(memory_format=torch.channels_last)))
+        return hook
+
     for name, module in policy.model.named_modules():
         if isinstance(module, torch.nn.LeakyReLU | torch.nn.GroupNorm) and "rotation" not in name:
-            module.register_full_backward_hook(
-                lambda m, grad_in, grad_out, name=name: layouts.__setitem__(
-                    name, grad_out[0].is_contiguous(memory_format=torch.channels_last)
-                )
-            )
+            module.register_forward_hook(record_gradient_layout(name))
     loss, _ = policy.forward(batch)
     loss.backward()
     assert len(layouts) == 2 + 2 * 4 + 2 * 4  # stem, encoder and decoder blocks

@@ -369,7 +369,7 @@ class ConvBlock(nn.Sequential):
         super().__init__(
             nn.Conv2d(in_channels, out_channels, kernel_size=3, stride=stride, padding=1),
             nn.GroupNorm(num_groups=4, num_channels=out_channels),
-            nn.LeakyReLU(LEAKY_SLOPE),
+            nn.LeakyReLU(LEAKY_SLOPE, inplace=True),
         )
 
 
@@ -385,9 +385,9 @@ class UNetEncoder(nn.Module):
         super().__init__()
         self.stem = nn.Sequential(
             nn.Conv2d(in_channels, 8, kernel_size=3, padding=1),
-            nn.LeakyReLU(LEAKY_SLOPE),
+            nn.LeakyReLU(LEAKY_SLOPE, inplace=True),
             nn.Conv2d(8, ENCODER_CHANNELS, kernel_size=1),
-            nn.LeakyReLU(LEAKY_SLOPE),
+            nn.LeakyReLU(LEAKY_SLOPE, inplace=True),
         )
         self.down = nn.ModuleList([ConvBlock(ENCODER_CHANNELS, ENCODER_CHANNELS, stride=2) for _ in range(4)])
 
@@ -580,7 +580,7 @@ class HiveformerModel(nn.Module):
         self.rotation_gripper_cnn = nn.Sequential(ConvBlock(dim, dim), ConvBlock(dim, dim))
         # Offset (3) + quaternion (4) + open logit (1), from pooled camera features + the gripper token.
         self.rotation_gripper_head = nn.Sequential(
-            nn.Linear(2 * dim, dim), nn.LeakyReLU(LEAKY_SLOPE), nn.Linear(dim, 8)
+            nn.Linear(2 * dim, dim), nn.LeakyReLU(LEAKY_SLOPE, inplace=True), nn.Linear(dim, 8)
         )
         # The offset starts at zero, as the authors' offset table does: at first the position is the
         # attention-weighted point of the cloud, so the pixel heatmap has to do the pointing.
