@@ -115,6 +115,19 @@ def test_a_distractor_on_the_target_is_wrong_cube_placed():
     assert "(not in the instruction) stands on the target where" in record["failure_detail"]
 
 
+def test_a_lifted_cube_never_let_go_is_cube_still_held():
+    """The expert's grasp and lift, then the policy holds still until the step limit."""
+    record = run("tower", Scripted(lambda env: env.expert_keyframes[:4]))
+    assert (record["failure_reason"], record["failure_subgoal"]) == ("cube still held", 1), record["failure_detail"]
+    assert "never let go" in record["failure_detail"]
+
+
+def test_lifting_a_distractor_instead_of_the_first_cube_is_wrong_cube_picked():
+    record = run("tower", Scripted(lambda env: env.sim_task.wrong_keyframes(env.world)[:4]))
+    assert (record["failure_reason"], record["failure_subgoal"]) == ("wrong cube picked", 1), record["failure_detail"]
+    assert "(not in the instruction) cube where" in record["failure_detail"]
+
+
 def test_a_placed_cube_that_leaves_the_target_is_tower_knocked_over():
     """The first cube is placed as the expert does, then knocked off the target (moved by hand)."""
     def knock(env):

@@ -141,9 +141,11 @@ class Tower(Task):
         - "cube placed off target": the level's cube was carried and let go over the target (within a cube's width
           of it) but does not stand at its level;
         - "cube dropped": it was lifted and let go elsewhere (or slipped out of the fingers);
+        - "cube still held": it was lifted and is still in the gripper at the end;
         - "grasp missed": the gripper closed at it but never lifted it;
         - "wrong cube placed": another cube (a distractor, or a later level's) stands at this level;
-        - else None (e.g. the level's cube is still held, or was never touched: the step limit).
+        - "wrong cube picked": it was never lifted, another cube (not yet in place) was;
+        - else None (e.g. nothing was ever touched: the step limit).
         """
         words = self.instructed.words
         level = next((k for k, colour in enumerate(words) if not self.in_place(world, colour, k)), None)
@@ -159,7 +161,11 @@ class Tower(Task):
                            f"{'were' if len(fallen) > 1 else 'was'} moved out of it")
         position, _ = world.body_pose(body)
         off = float(np.linalg.norm(position[:2] - self.target))
-        if self.lifted[colour] >= LIFTED and not world.held_object([body]):
+        if self.lifted[colour] >= LIFTED and world.held_object([body]) is not None:
+            return Failure("cube still held", subgoal,
+                           f"the {colour} cube was lifted {100 * self.lifted[colour]:.0f} cm and never let go "
+                           f"({100 * off:.0f} cm from the target at the end)")
+        if self.lifted[colour] >= LIFTED:
             released = self.released.get(colour, off)
             if released <= NEAR_TARGET:
                 below = round(100 * (position[2] - (level + 0.5) * CUBE), 1) + 0.0  # cm, never "-0.0"
@@ -170,17 +176,27 @@ class Tower(Task):
             return Failure("cube dropped", subgoal,
                            f"the {colour} cube was lifted {100 * self.lifted[colour]:.0f} cm and let go "
                            f"{100 * released:.0f} cm from the target")
-        if colour in self.closed_near and self.lifted[colour] < LIFTED:
+        # From here on the level's cube was never lifted.
+        if colour in self.closed_near:
             return Failure("grasp missed", subgoal, f"the gripper closed at the {colour} cube but never lifted it")
         for other, other_body in self.cubes.items():
             other_position, _ = world.body_pose(other_body)
             if other != colour and np.linalg.norm(other_position[:2] - self.target) <= NEAR_TARGET \
                     and abs(other_position[2] - (level + 0.5) * CUBE) <= HEIGHT_TOLERANCE:
                 where = "on the target" if level == 0 else f"at level {subgoal} of the tower"
-                which = f"the cube of level {words.index(other) + 1}" if other in words else "not in the instruction"
+                which = self._role(other)
                 return Failure("wrong cube placed", subgoal,
                                f"the {other} cube ({which}) stands {where} where {colour} belongs")
+        picked = [c for c in self.cubes if c not in words[:level + 1] and self.lifted[c] >= LIFTED]
+        if picked:
+            which = " and ".join(f"{c} ({self._role(c)})" for c in picked)
+            return Failure("wrong cube picked", subgoal,
+                           f"the gripper lifted the {which} cube{'s' if len(picked) > 1 else ''} where {colour} was next")
         return None
+
+    def _role(self, colour: str) -> str:
+        words = self.instructed.words
+        return f"the cube of level {words.index(colour) + 1}" if colour in words else "not in the instruction"
 
     goal_sketch = "stack"
 
