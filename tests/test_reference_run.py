@@ -58,7 +58,8 @@ def test_curve_must_divide_the_steps():
         main(["--steps", "10", "--curve", "3"])
     with pytest.raises(SystemExit):
         main(["--policy", "act", "--task", "tower"])
-    for wrong in (["--unseen", "--task", "tower"], ["--unseen", "--variation", "3"], ["--train-variations", "5"],
+    for wrong in (["--unseen", "--task", "tower"], ["--unseen", "--variation", "150"], ["--unseen", "--variation", "red"],
+                  ["--unseen", "--variation", "3", "--train-variations", "5"], ["--train-variations", "5"],
                   ["--unseen", "--train-variations", "101"], ["--human-instructions", "x.json"],
                   ["--unseen", "--human-instructions", "/nonexistent.json"], ["--train-arg", "policy.whole_episodes"],
                   ["--policy", "act", "--train-arg=--steps=3"]):
@@ -115,3 +116,15 @@ def test_checkpoints_are_saved_at_every_curve_point_and_at_most_500_steps_apart(
 
     assert save_interval(4500, 3) == 500 and save_interval(1500, 1) == 500 and save_interval(300, 1) == 300
     assert save_interval(2, 2) == 1 and save_interval(1001, 1) == 143
+
+
+def test_unseen_runs_take_the_first_train_ids_or_the_ones_named():
+    from demo_factory.tools.reference_run import missing_test_colours, parse_arguments
+
+    assert parse_arguments(["--unseen", "--train-variations", "3"]).variations == ["0", "1", "2"]
+    named = parse_arguments(["--unseen", "--variation", "0", "--variation", "2"])
+    assert named.variations == ["0", "2"] and named.train_variations is None
+    # The first 20 train ids name every colour of the test variations; 0 and 2 name six of them.
+    assert missing_test_colours([str(i) for i in range(20)]) == []
+    assert missing_test_colours(["0", "2", "3", "5", "6", "22", "28"]) == []  # the README's smallest cover
+    assert "green" not in missing_test_colours(["0", "2"]) and len(missing_test_colours(["0", "2"])) == 12

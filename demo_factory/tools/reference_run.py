@@ -42,6 +42,7 @@ from lerobot.common.train_utils import get_step_checkpoint_dir
 from demo_factory.convert.converter import read_dataset_provenance
 from demo_factory.convert.usage import act_chunk, act_train_args
 from demo_factory.instructions import shipped_human_instructions
+from demo_factory.tasks import get_task
 
 BIN = Path(sys.executable).parent
 # Seen variations, one of each length: 205 (maroon) is past the paper's 0-199 (its train ids have no
@@ -237,7 +238,8 @@ def stage(name: str, done: Path, timings: dict, command: list[str], out: Path) -
     print(f"[{name}] {timings[name]:.0f} s", flush=True)
 
 
-def main(argv=None) -> int:
+def parse_arguments(argv=None) -> argparse.Namespace:
+    """The run's options, checked, with every default filled in and `variations` the seen variations."""
     parser = argparse.ArgumentParser(prog="python -m demo_factory.tools.reference_run", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--policy", choices=sorted(PRESETS), default="hiveformer",
@@ -259,7 +261,8 @@ def main(argv=None) -> int:
                         "make the human split (default: the paper authors' 162 sentences, 51 test variations)")
     parser.add_argument("--variation", action="append", help="seen variation id or colour sequence (repeatable; "
                         f"default push_buttons: {', '.join(DEFAULT_VARIATIONS)}, tower: "
-                        f"{', '.join(TASK_VARIATIONS['tower'])}; ACT: blue)")
+                        f"{', '.join(TASK_VARIATIONS['tower'])}; ACT: blue; with --unseen: paper train ids 0-99, in place of "
+                        "--train-variations)")
     parser.add_argument("--episodes-per-variation", type=int, help="training episodes per seen variation "
                         "(default: 40; ACT: 50)")
     parser.add_argument("--test-episodes", type=int, help="episodes of test variations for the unseen splits "
@@ -285,9 +288,14 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
     if args.policy != "hiveformer" and args.task != "push_buttons":
         parser.error(f"--task {args.task}: the {args.policy} reference run is push_buttons only")
-    if args.unseen and (args.policy != "hiveformer" or args.task != "push_buttons" or args.variation):
-        parser.error("--unseen is the HiveFormer push_buttons run on the paper's train variations: without --policy, "
-                     "--task or --variation")
+    if args.unseen and (args.policy != "hiveformer" or args.task != "push_buttons"):
+        parser.error("--unseen is the HiveFormer push_buttons run on the paper's train variations: without --policy "
+                     "or --task")
+    if args.unseen and args.variation:
+        outside = [v for v in args.variation if not (v.isdigit() and int(v) < 100)]
+        if outside or args.train_variations is not None:
+            parser.error(f"--variation {outside[0]}: with --unseen, a paper train id 0-99" if outside else
+                         "--variation and --train-variations: with --unseen, one or the other")
     malformed = [a for a in args.train_arg if not (a.startswith("--") and "=" in a)]
     if malformed:
         parser.error(f"--train-arg {malformed[0]!r}: expected --KEY=VALUE (a lerobot-train argument)")
@@ -300,14 +308,30 @@ def main(argv=None) -> int:
         parser.error(f"--train-variations {args.train_variations}: with --unseen, 1 to 100 (the paper's train ids)")
     defaults = {"text_encoder": REFERENCE_TEXT_ENCODER, "curve": 1} | PRESETS[args.policy] | (UNSEEN if args.unseen else {})
     for name, value in defaults.items():
-        if name != "variations" and getattr(args, name, None) is None:
+        if name != "variations" and getattr(args, name, None) is None and not (name == "train_variations" and args.variation):
             setattr(args, name, value)
     if args.curve < 1 or args.steps % args.curve:
         parser.error(f"--curve {args.curve}: a positive number of checkpoints that divides --steps {args.steps}")
-    variations = args.variation or list(PRESETS[args.policy]["variations"] if args.policy != "hiveformer"
-                                        else TASK_VARIATIONS[args.task])
-    if args.unseen:
-        variations = [str(i) for i in range(args.train_variations)]
+    args.variations = args.variation or list(PRESETS[args.policy]["variations"] if args.policy != "hiveformer"
+                                             else TASK_VARIATIONS[args.task])
+    if args.unseen and not args.variation:
+        args.variations = [str(i) for i in range(args.train_variations)]
+    return args
+
+
+def missing_test_colours(train_variations: list[str]) -> list[str]:
+    """Colours of the paper's push_buttons test variations (100-199) that no train variation names."""
+    task = get_task("push_buttons")
+    seen = {w for v in train_variations for w in task.variation(int(v)).words}
+    return sorted({w for i in range(100, 200) for w in task.variation(i).words} - seen)
+
+
+def main(argv=None) -> int:
+    args = parse_arguments(argv)
+    variations = args.variations
+    if args.unseen and (missing := missing_test_colours(variations)):
+        print(f"note: the train variations name none of the test colours {', '.join(missing)}: "
+              "no instruction can teach the policy those words", flush=True)
     dense = args.policy != "hiveformer"
     suffix = "_act" if dense else "_unseen" if args.unseen else "" if args.task == "push_buttons" else "_tower"
     out = args.out or Path("outputs/reference" + suffix)
