@@ -22,7 +22,7 @@ def test_unseen_reference_run_trains_on_paper_train_ids_and_curves_the_unseen_sp
     human_file.write_text(json.dumps(rows))
     arguments = ["--unseen", "--out", str(out), "--train-variations", "2", "--episodes-per-variation", "1",
                  "--steps", "2", "--curve", "2", "--batch-size", "2", "--eval-episodes", "1", "--workers", "2",
-                 "--image-size", "32", "--seed", "3", "--train-arg=--policy.stem_point_cloud=true",
+                 "--image-size", "32", "--seed", "3", "--train-arg=--policy.whole_episodes=true",
                  "--human-instructions", str(human_file)]
     assert main(arguments) == 0
     summary = json.loads((out / "reference_run.json").read_text())
@@ -31,8 +31,9 @@ def test_unseen_reference_run_trains_on_paper_train_ids_and_curves_the_unseen_sp
     assert set(summary["stage_seconds"]) >= {"generate_train", "generate_test", "convert", "train", "eval"}
     checkpoint = out / "train" / "checkpoints" / "last" / "pretrained_model"
     assert json.loads((checkpoint / "train_config.json").read_text())["seed"] == 3
-    config = json.loads((checkpoint / "config.json").read_text())  # the plugin's defaults, but for --train-arg's key
+    config = json.loads((checkpoint / "config.json").read_text())  # the unseen recipe, but for --train-arg's key
     assert config["stem_point_cloud"] is True and config["whole_episodes"] is True
+    assert config["instruction_position_embeddings"] is True
     assert config["text_encoder"] == "minilm" and config["n_history"] == 10
     splits = summary["results"]["splits"]
     assert {"train", "test_unseen_synthetic", "test_unseen_corrupted", "test_unseen_human"} <= set(splits)
@@ -96,7 +97,7 @@ def test_train_arguments_replace_the_runs_own_setting_of_their_key():
 def test_make_reference_pins_its_recipe_and_train_arguments_replace_settings(tmp_path):
     from argparse import Namespace
 
-    from demo_factory.tools.reference_run import SEEN_RECIPE, hiveformer_run_command
+    from demo_factory.tools.reference_run import SEEN_RECIPE, UNSEEN_RECIPE, hiveformer_run_command
 
     run = Namespace(task="push_buttons", unseen=False, steps=1500, batch_size=16, text_encoder="one_hot",
                     n_history=10, curve=1, train_arg=[])
@@ -106,9 +107,11 @@ def test_make_reference_pins_its_recipe_and_train_arguments_replace_settings(tmp
     command = hiveformer_run_command(run, tmp_path / "train", tmp_path / "out")
     assert "--policy.whole_episodes=true" in command and "--policy.whole_episodes=false" not in command
     assert "--policy.stem_point_cloud=true" in command
-    for task, unseen in (("tower", False), ("push_buttons", True)):  # the plugin's defaults
-        run = Namespace(**{**vars(run), "task": task, "unseen": unseen, "train_arg": []})
-        assert not set(SEEN_RECIPE) & set(hiveformer_run_command(run, tmp_path / "train", tmp_path / "out"))
+    tower = Namespace(**{**vars(run), "task": "tower", "train_arg": []})  # the plugin's defaults
+    assert not set(SEEN_RECIPE) & set(hiveformer_run_command(tower, tmp_path / "train", tmp_path / "out"))
+    unseen = Namespace(**{**vars(run), "unseen": True, "train_arg": []})  # windows and the 7-channel stem
+    command = hiveformer_run_command(unseen, tmp_path / "train", tmp_path / "out")
+    assert set(UNSEEN_RECIPE) <= set(command) and "--policy.instruction_position_embeddings=false" not in command
 
 
 def test_checkpoints_are_saved_at_every_curve_point_and_at_most_500_steps_apart():
