@@ -18,8 +18,9 @@ training itself resumes from its last checkpoint (`lerobot-train --resume=true`;
 500 steps).
 With `--unseen` the run is built to show instructions followed that were never seen: the paper's train
 variations 0-19 (every colour of the test variations among them, 15 episodes each), pretrained MiniLM
-instruction features, windows and the 7-channel stem as `make reference`, the test episodes on the paper's test variations that the authors' human-written
-sentences name, and a learning curve of both the seen and the unseen-synthetic success.
+instruction features, windows and the 7-channel stem as `make reference`, the test episodes on the
+paper's test variations that the authors' human-written sentences name, and a learning curve of both the
+seen and the unseen-synthetic success.
 At the end it prints the results table (also `OUT/eval/results.md`, `results.json`, `results.png`)
 and writes `OUT/reference_run.json` (configuration, stage wall times, success rates) and, with a
 learning curve, prints it and plots it to `OUT/learning_curve.png`.
