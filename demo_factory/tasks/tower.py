@@ -161,11 +161,11 @@ class Tower(Task):
                            f"{'were' if len(fallen) > 1 else 'was'} moved out of it")
         position, _ = world.body_pose(body)
         off = float(np.linalg.norm(position[:2] - self.target))
-        if self.lifted[colour] >= LIFTED and world.held_object([body]) is not None:
-            return Failure("cube still held", subgoal,
-                           f"the {colour} cube was lifted {100 * self.lifted[colour]:.0f} cm and never let go "
-                           f"({100 * off:.0f} cm from the target at the end)")
         if self.lifted[colour] >= LIFTED:
+            if world.held_object([body]) is not None:
+                return Failure("cube still held", subgoal,
+                               f"the {colour} cube was lifted {100 * self.lifted[colour]:.0f} cm and never let go "
+                               f"({100 * off:.0f} cm from the target at the end)")
             released = self.released.get(colour, off)
             if released <= NEAR_TARGET:
                 below = round(100 * (position[2] - (level + 0.5) * CUBE), 1) + 0.0  # cm, never "-0.0"
@@ -184,9 +184,8 @@ class Tower(Task):
             if other != colour and np.linalg.norm(other_position[:2] - self.target) <= NEAR_TARGET \
                     and abs(other_position[2] - (level + 0.5) * CUBE) <= HEIGHT_TOLERANCE:
                 where = "on the target" if level == 0 else f"at level {subgoal} of the tower"
-                which = self._role(other)
                 return Failure("wrong cube placed", subgoal,
-                               f"the {other} cube ({which}) stands {where} where {colour} belongs")
+                               f"the {other} cube ({self._role(other)}) stands {where} where {colour} belongs")
         picked = [c for c in self.cubes if c not in words[:level + 1] and self.lifted[c] >= LIFTED]
         if picked:
             which = " and ".join(f"{c} ({self._role(c)})" for c in picked)

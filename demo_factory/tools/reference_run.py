@@ -313,9 +313,10 @@ def parse_arguments(argv=None) -> argparse.Namespace:
                      + ("not a file" if args.unseen else "only with --unseen"))
     if args.train_variations is not None and not (args.unseen and 1 <= args.train_variations <= 100):
         parser.error(f"--train-variations {args.train_variations}: with --unseen, 1 to 100 (the paper's train ids)")
-    defaults = {"text_encoder": REFERENCE_TEXT_ENCODER, "curve": 1} | PRESETS[args.policy] | (UNSEEN if args.unseen else {})
+    unseen = UNSEEN | ({"train_variations": None} if args.variation else {})  # named ids replace the count
+    defaults = {"text_encoder": REFERENCE_TEXT_ENCODER, "curve": 1} | PRESETS[args.policy] | (unseen if args.unseen else {})
     for name, value in defaults.items():
-        if name != "variations" and getattr(args, name, None) is None and not (name == "train_variations" and args.variation):
+        if name != "variations" and getattr(args, name, None) is None:
             setattr(args, name, value)
     if args.curve < 1 or args.steps % args.curve:
         parser.error(f"--curve {args.curve}: a positive number of checkpoints that divides --steps {args.steps}")
@@ -335,8 +336,7 @@ def missing_test_colours(train_variations: list[str]) -> list[str]:
 
 def main(argv=None) -> int:
     args = parse_arguments(argv)
-    variations = args.variations
-    if args.unseen and (missing := missing_test_colours(variations)):
+    if args.unseen and (missing := missing_test_colours(args.variations)):
         print(f"note: the train variations name none of the test colours {', '.join(missing)}: "
               "no instruction can teach the policy those words", flush=True)
     dense = args.policy != "hiveformer"
@@ -350,7 +350,7 @@ def main(argv=None) -> int:
     generate = [str(BIN / "demo-factory"), "generate", "--task", args.task, "--image-size", str(args.image_size),
                 "--workers", str(args.workers), *(["--dense-fps", str(DENSE_FPS)] if dense else [])]
     stage("generate_train", raw / "train" / ".complete", timings,
-          generate + ["--split", "train", *[f"--variation={v}" for v in variations],
+          generate + ["--split", "train", *[f"--variation={v}" for v in args.variations],
                       "--episodes-per-variation", str(args.episodes_per_variation), "--out", str(raw / "train")], out)
     (raw / "train" / ".complete").touch()
     if args.unseen:  # the test variations the authors' human-written sentences name
@@ -387,7 +387,7 @@ def main(argv=None) -> int:
                             CURVE_SPLITS[args.unseen])
              if args.curve > 1 else [])
     train_log = out / "train.log"
-    summary = {"configuration": vars(args) | {"out": str(out), "variations": variations,
+    summary = {"configuration": vars(args) | {"out": str(out),
                                               **({"dense_fps": DENSE_FPS, "action_space": "joints"} if dense else {})},
                "stage_seconds": timings, "train_step": train_log_timings(train_log.read_text() if train_log.exists() else ""), "wall_seconds_this_invocation": round(time.time() - began, 1),
                "learning_curve": curve, "results": results}
