@@ -304,6 +304,8 @@ def test_config_rejects_bad_values():
         HiveformerConfig(hidden_dim=60, num_heads=8, device="cpu")
     with pytest.raises(ValueError, match="IDENTITY"):
         HiveformerConfig(normalization_mapping={"STATE": "MEAN_STD"}, device="cpu")
+    with pytest.raises(ValueError, match="lr_schedule must be one of constant, cosine; got 'linear'"):
+        HiveformerConfig(lr_schedule="linear", device="cpu")
 
 
 def test_training_decodes_only_supervised_steps_with_the_same_predictions(tiny_dataset_root):
@@ -405,6 +407,21 @@ def test_optimiser_preset_is_the_authors(tiny_dataset_root):
     biases = {id(p) for name, p in policy.named_parameters() if name.endswith("bias")}
     assert {id(p) for p in plain["params"]} == norm_weights | biases
     assert len(plain["params"]) + len(decayed["params"]) == len(list(policy.parameters()))
+
+
+def test_cosine_schedule_anneals_the_authors_rate_to_zero_over_the_run(tiny_dataset_root):
+    policy = make_tiny_policy(tiny_dataset_root)
+    assert policy.config.get_scheduler_preset() is None  # the authors': constant
+    config = HiveformerConfig(lr_schedule="cosine", device="cpu")
+    optimizer = config.get_optimizer_preset().build(policy.get_optim_params())
+    scheduler = config.get_scheduler_preset().build(optimizer, num_training_steps=100)  # as lerobot-train builds it
+    rates = []
+    for _ in range(100):
+        rates.append(optimizer.param_groups[0]["lr"])
+        optimizer.step()
+        scheduler.step()
+    assert rates[0] == pytest.approx(1e-3) and rates[50] == pytest.approx(5e-4)
+    assert all(a > b for a, b in zip(rates, rates[1:])) and rates[-1] < 1e-6
 
 
 def test_minilm_is_a_real_pretrained_encoder_that_needs_no_download(tiny_dataset_root):

@@ -11,6 +11,7 @@ from dataclasses import dataclass, field
 from lerobot.configs.policies import PreTrainedConfig
 from lerobot.configs.types import FeatureType, NormalizationMode, PolicyFeature
 from lerobot.optim.optimizers import AdamWConfig, OptimizerConfig
+from lerobot.optim.schedulers import CosineAnnealingWithWarmupSchedulerConfig
 from lerobot.utils.constants import ACTION, OBS_STATE
 
 IMAGES_PREFIX = "observation.images."
@@ -25,6 +26,7 @@ GRIPPER_STATE_DIM = 8
 # The encoder halves the image four times: one token per cell of an (H/16, W/16) grid.
 ENCODER_STRIDE = 16
 TEXT_ENCODERS = ("clip", "clip_tiny_random", "minilm", "one_hot")
+LR_SCHEDULES = ("constant", "cosine")
 
 
 @OptimizerConfig.register_subclass("adamw_fused")
@@ -130,6 +132,11 @@ class HiveformerConfig(PreTrainedConfig):
     optimizer_lr: float = 1e-3
     optimizer_weight_decay: float = 5e-4
     optimizer_grad_clip_norm: float = 0.0
+    # Learning rate over the run: "constant" (the authors', who pick the checkpoint by validation) or
+    # "cosine" (annealed from optimizer_lr to 0 over lerobot-train's --steps: LeRobot's
+    # cosine_annealing_with_warmup, no warmup), so that the last checkpoint is not one draw from a noisy
+    # plateau.
+    lr_schedule: str = "constant"
 
     # Make glibc's malloc keep the memory tensors free instead of returning it to the kernel and faulting it
     # in again (see allocator.py): CPU train steps take about half as long. The process keeps its peak heap.
@@ -171,6 +178,8 @@ class HiveformerConfig(PreTrainedConfig):
             raise ValueError(
                 f"text_encoder must be one of {', '.join(TEXT_ENCODERS)}; got {self.text_encoder!r}."
             )
+        if self.lr_schedule not in LR_SCHEDULES:
+            raise ValueError(f"lr_schedule must be one of {', '.join(LR_SCHEDULES)}; got {self.lr_schedule!r}.")
         for name, mode in self.normalization_mapping.items():
             if NormalizationMode(mode) is not NormalizationMode.IDENTITY:
                 raise ValueError(
@@ -290,5 +299,5 @@ class HiveformerConfig(PreTrainedConfig):
             grad_clip_norm=self.optimizer_grad_clip_norm,
         )
 
-    def get_scheduler_preset(self) -> None:
-        return None
+    def get_scheduler_preset(self) -> CosineAnnealingWithWarmupSchedulerConfig | None:
+        return CosineAnnealingWithWarmupSchedulerConfig(num_warmup_steps=0) if self.lr_schedule == "cosine" else None
