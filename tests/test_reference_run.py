@@ -103,7 +103,6 @@ def test_make_reference_pins_its_recipe_and_train_arguments_replace_settings(tmp
                     n_history=10, curve=1, train_arg=[])
     command = hiveformer_run_command(run, tmp_path / "train", tmp_path / "out")
     assert set(SEEN_RECIPE) <= set(command) and "--policy.n_history=10" in command and "--save_freq=500" in command
-    assert "--policy.lr_schedule=cosine" in command  # the last checkpoint a settled model, whatever the seed
     run.train_arg = ["--policy.whole_episodes=true"]
     command = hiveformer_run_command(run, tmp_path / "train", tmp_path / "out")
     assert "--policy.whole_episodes=true" in command and "--policy.whole_episodes=false" not in command
