@@ -17,13 +17,17 @@ from hiveformer_fixtures import (
 from lerobot.policies.factory import make_policy, make_pre_post_processors
 from lerobot_policy_hiveformer import HiveformerConfig, HiveformerPolicy, modeling_hiveformer
 from lerobot_policy_hiveformer.modeling_hiveformer import (
+    ChannelsLastGroupNorm,
     ClipInstructionEncoder,
+    ConvBlock,
+    KeyframeObservations,
     MultiHeadAttention,
     gripper_mark,
     keyframe_observations,
     project_to_pixels,
     quaternion_loss,
     random_rescale,
+    conv_block_of_concatenation,
     supervised_steps,
     tiny_random_clip_text_model,
 )
@@ -393,6 +397,69 @@ def test_random_rescale_moves_colour_points_and_mark_together(tiny_dataset_root)
         assert torch.equal(out.calibration, obs.calibration)  # calibration is never augmented
 
 
+def test_random_rescale_is_nearest_resize_reflection_pad_and_crop():
+    """The one-gather augmentation equals the authors' steps done one by one with PyTorch, random draws included."""
+    batch, steps, cameras, height, width = 3, 2, 2, 16, 12
+    lead = (batch, steps, cameras)
+    obs = KeyframeObservations(
+        rgb=torch.rand(*lead, 3, height, width), points=torch.randn(*lead, 3, height, width),
+        valid_pixels=torch.rand(*lead, height, width) > 0.3, mark=torch.rand(*lead, 1, height, width),
+        calibration=torch.zeros(*lead, 20), gripper=torch.zeros(batch, steps, 8),
+        step_valid=torch.ones(batch, steps, dtype=torch.bool), instructions=["x"] * batch)
+    for seed, (low, high) in enumerate([(0.75, 1.25), (0.55, 0.8), (1.3, 2.0), (1.0, 1.0)]):
+        torch.manual_seed(seed)
+        out = random_rescale(obs, low, high)
+        torch.manual_seed(seed)
+        for sample in range(batch):
+            scale = float(torch.empty(()).uniform_(low, high))
+            size = (max(int(height * scale), 1), max(int(width * scale), 1))
+            maps = torch.cat([obs.rgb, obs.points, obs.valid_pixels.unsqueeze(3).float(), obs.mark], dim=3)[sample]
+            x = torch.nn.functional.interpolate(maps.flatten(0, 1), size=size, mode="nearest")
+            x = torch.nn.functional.pad(x, (0, max(width - size[1], 0), 0, max(height - size[0], 0)), mode="reflect")
+            top = int(torch.randint(0, x.shape[-2] - height + 1, ()))
+            left = int(torch.randint(0, x.shape[-1] - width + 1, ()))
+            expected = x[..., top : top + height, left : left + width].unflatten(0, (steps, cameras))
+            got = torch.cat([out.rgb, out.points, out.valid_pixels.unsqueeze(3).float(), out.mark], dim=3)[sample]
+            assert torch.equal(got, expected), (seed, sample)
+
+
+@pytest.mark.parametrize("shape", [(6, 16, 64, 64), (40, 16, 8, 8), (2, 16, 4, 4)])
+def test_channels_last_group_norm_equals_pytorchs(shape):
+    """Same values and gradients (input, weight, bias) as F.group_norm, channels-last in and out; small maps
+    and NCHW maps take PyTorch's kernel."""
+    torch.manual_seed(0)
+    norm = ChannelsLastGroupNorm(num_groups=4, num_channels=shape[1])
+    with torch.no_grad():
+        norm.weight.normal_()
+        norm.bias.normal_()
+    for memory_format in (torch.channels_last, torch.contiguous_format):
+        x = (torch.randn(shape) * 3 + 1).contiguous(memory_format=memory_format).requires_grad_()
+        grad = torch.randn(shape).contiguous(memory_format=memory_format)
+        out = norm(x)
+        expected = torch.nn.functional.group_norm(x, 4, norm.weight, norm.bias, norm.eps)
+        assert torch.allclose(out, expected, atol=1e-5)
+        assert out.is_contiguous(memory_format=memory_format)
+        grads = torch.autograd.grad(out, (x, norm.weight, norm.bias), grad)
+        expected_grads = torch.autograd.grad(expected, (x, norm.weight, norm.bias), grad)
+        for got, want in zip(grads, expected_grads, strict=True):
+            assert torch.allclose(got, want, rtol=1e-4, atol=1e-4 * float(want.abs().max()))
+        assert grads[0].is_contiguous(memory_format=memory_format)
+
+
+def test_conv_block_of_concatenation_equals_the_block_on_the_concatenation():
+    torch.manual_seed(0)
+    block = ConvBlock(24, 16)
+    parts = [torch.randn(5, 8, 16, 16).contiguous(memory_format=torch.channels_last).requires_grad_(),
+             torch.randn(5, 16, 16, 16).contiguous(memory_format=torch.channels_last).requires_grad_()]
+    out = conv_block_of_concatenation(block, parts)
+    expected = block(torch.cat(parts, dim=1))
+    assert torch.allclose(out, expected, atol=1e-5) and out.is_contiguous(memory_format=torch.channels_last)
+    grad = torch.randn_like(out)
+    wrt = [*parts, *block.parameters()]
+    for got, want in zip(torch.autograd.grad(out, wrt, grad), torch.autograd.grad(expected, wrt, grad), strict=True):
+        assert torch.allclose(got, want, atol=1e-4)
+
+
 def test_optimiser_preset_is_the_authors(tiny_dataset_root):
     policy = make_tiny_policy(tiny_dataset_root)
     preset = policy.config.get_optimizer_preset()
@@ -460,11 +527,12 @@ def test_measure_compute_times_each_part_of_every_rollout_step(tiny_dataset_root
     for parts in steps:
         assert set(parts) == {"encoder", "transformer", "attention", "heads", "decoder"}
         assert 0 < parts["attention"] < parts["transformer"] and 0 < parts["decoder"] < parts["heads"]
-    attention = torch.nn.functional.scaled_dot_product_attention
+    attention, conv2d = torch.nn.functional.scaled_dot_product_attention, torch.nn.functional.conv2d
     observation = single_step(batch, 2)
     alone = measure.kernels_alone_ms(policy, lambda: policy.select_action(observation), repeats=3)
     assert set(alone) == {"convolutions", "attention"} and all(ms > 0 for ms in alone.values())
     assert torch.nn.functional.scaled_dot_product_attention is attention  # put back
+    assert torch.nn.functional.conv2d is conv2d
     assert not any(module._forward_hooks for module in policy.modules())
     # A training step's floor: the same kernels with their backward passes, each alone.
     policy.train()

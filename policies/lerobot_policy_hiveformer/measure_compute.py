@@ -113,24 +113,24 @@ def kernels_alone_ms(policy, step, repeats: int = 50, backward: bool = False) ->
     that needed them and of its weights), as in a training step.
     """
     calls = []
+    # Recorded where every convolution goes through, `nn.Conv2d` and the policy's direct calls alike.
+    kernels = {"conv2d": "convolutions", "scaled_dot_product_attention": "attention"}
+    originals = {name: getattr(F, name) for name in kernels}
 
-    def record(module, inputs, _output):
-        calls.append(("convolutions", module, inputs, {}))
+    def recorder(name):
+        def recorded(*args, **kwargs):
+            calls.append((kernels[name], originals[name], args, kwargs))
+            return originals[name](*args, **kwargs)
 
-    hooks = [m.register_forward_hook(record) for m in policy.modules() if isinstance(m, torch.nn.Conv2d)]
-    attention = F.scaled_dot_product_attention
+        return recorded
 
-    def recorded(*args, **kwargs):
-        calls.append(("attention", attention, args, kwargs))
-        return attention(*args, **kwargs)
-
-    F.scaled_dot_product_attention = recorded
+    for name in kernels:
+        setattr(F, name, recorder(name))
     try:
         step()
     finally:
-        F.scaled_dot_product_attention = attention
-        for hook in hooks:
-            hook.remove()
+        for name, function in originals.items():
+            setattr(F, name, function)
     totals = {"convolutions": 0.0, "attention": 0.0}
     for kind, function, args, kwargs in calls:
         call = _backward_call(function, args, kwargs) if backward else _inference_call(function, args, kwargs)

@@ -34,6 +34,8 @@ ENCODER_CHANNELS = 16
 LEAKY_SLOPE = 0.02
 # The head dimension below which attention is zero-padded on CPU (see MultiHeadAttention).
 FUSED_CPU_MIN_HEAD_DIM = 16
+# Values in a map below which ChannelsLastGroupNorm leaves it to PyTorch's kernel (its own Python costs ~1 ms).
+CHANNELS_LAST_GROUP_NORM_MIN_SIZE = 2**16
 
 # --- Geometry: pure functions ----------------------------------------------------------------------
 
@@ -162,31 +164,51 @@ def random_rescale(obs: KeyframeObservations, min_scale: float, max_scale: float
     """The authors' training augmentation: per sample, one random scale for all its steps and cameras;
     RGB, point cloud, valid-pixel mask and gripper mark are resized together (nearest neighbour), padded
     by reflection when smaller, then cropped back to (H, W) at a random offset.
+
+    Each output pixel is one input pixel, so the whole augmentation is one gather per map with the
+    sample's source pixel for each output pixel (`rescale_source_pixels`): the same values as
+    `F.interpolate(mode="nearest")`, `F.pad(mode="reflect")` and a crop, in one pass instead of four.
     """
-    batch, steps, cameras, _, height, width = obs.rgb.shape
-    maps = torch.cat([obs.rgb, obs.points, obs.valid_pixels.unsqueeze(3).to(obs.rgb.dtype), obs.mark], dim=3)
-    rescaled = []
-    for sample in maps:  # (T, C, 8, H, W)
+    batch, _, _, _, height, width = obs.rgb.shape
+    sources = []
+    for _ in range(batch):
         scale = float(torch.empty(()).uniform_(min_scale, max_scale))
         size = (max(int(height * scale), 1), max(int(width * scale), 1))
-        x = F.interpolate(sample.flatten(0, 1), size=size, mode="nearest")
-        pad_bottom, pad_right = max(height - size[0], 0), max(width - size[1], 0)
-        if pad_bottom or pad_right:
-            x = F.pad(x, (0, pad_right, 0, pad_bottom), mode="reflect")
-        top = int(torch.randint(0, x.shape[-2] - height + 1, ()))
-        left = int(torch.randint(0, x.shape[-1] - width + 1, ()))
-        rescaled.append(x[..., top : top + height, left : left + width].unflatten(0, (steps, cameras)))
-    maps = torch.stack(rescaled)  # (B, T, C, 8, H, W)
+        top = int(torch.randint(0, max(size[0], height) - height + 1, ()))
+        left = int(torch.randint(0, max(size[1], width) - width + 1, ()))
+        rows = rescale_source_pixels(height, size[0], top)
+        cols = rescale_source_pixels(width, size[1], left)
+        sources.append(rows[:, None] * width + cols[None, :])
+    index = torch.stack(sources).view(batch, 1, 1, 1, height * width).to(obs.rgb.device)
+
+    def gather(x: Tensor) -> Tensor:  # (B, T, C, k, H, W); gather with an expanded index beats take_along_dim
+        flat = x.flatten(-2)
+        return torch.gather(flat, -1, index.expand(flat.shape)).unflatten(-1, (height, width))
+
     return KeyframeObservations(
-        rgb=maps[:, :, :, :3],
-        points=maps[:, :, :, 3:6],
-        valid_pixels=maps[:, :, :, 6] > 0.5,
-        mark=maps[:, :, :, 7:],
+        rgb=gather(obs.rgb),
+        points=gather(obs.points),
+        valid_pixels=gather(obs.valid_pixels.unsqueeze(3)).squeeze(3),
+        mark=gather(obs.mark),
         calibration=obs.calibration,
         gripper=obs.gripper,
         step_valid=obs.step_valid,
         instructions=obs.instructions,
     )
+
+
+def rescale_source_pixels(length: int, size: int, offset: int) -> Tensor:
+    """For each of `length` output pixels along one axis, its input pixel after a nearest-neighbour resize
+    of the axis to `size`, reflection padding back to `length` when smaller and a crop from `offset`."""
+    position = torch.arange(offset, offset + length)
+    period = max(2 * (size - 1), 1)  # reflection, the edge pixel not repeated (as F.pad's "reflect")
+    position = position % period
+    position = torch.where(position < size, position, period - position)
+    if size == length:
+        return position
+    # PyTorch's nearest rule: floor(out * in / out_size) computed in float32, clamped to the last pixel.
+    scale = torch.tensor(length / size, dtype=torch.float32)
+    return (position.float() * scale).floor().long().clamp_max(length - 1)
 
 
 def take_steps(x: Tensor, steps: Tensor, leading_dims: int = 2) -> Tensor:
@@ -362,15 +384,93 @@ def make_instruction_encoder(config: HiveformerConfig) -> InstructionEncoder:
 # --- Network --------------------------------------------------------------------------------------
 
 
+class ChannelsLastGroupNorm(nn.GroupNorm):
+    """`nn.GroupNorm` (same parameters, same values) that runs channels-last CPU maps as a few passes over
+    their (N, H*W, C) matrix. PyTorch's CPU kernel for that layout is 2-5x slower than for NCHW, forward
+    and backward, at HiveFormer's 16-channel maps (README, benchmarks); converting to NCHW and back costs
+    as much as it saves. Other inputs take PyTorch's kernel."""
+
+    def forward(self, x: Tensor) -> Tensor:
+        if (x.device.type != "cpu" or x.dim() != 4 or x.numel() < CHANNELS_LAST_GROUP_NORM_MIN_SIZE
+                or not x.is_contiguous(memory_format=torch.channels_last)):
+            return super().forward(x)
+        return _ChannelsLastGroupNorm.apply(x, self.num_groups, self.weight, self.bias, self.eps)
+
+
+class _ChannelsLastGroupNorm(torch.autograd.Function):
+    """GroupNorm of a channels-last (N, C, H, W) map with per-channel affine weight and bias.
+
+    Statistics come from per-channel sums over the pixels (reductions over the matrix's rows, which run
+    vectorised over its contiguous channels); the output and the input's gradient are each one or two
+    broadcast multiply-adds with per-(sample, channel) coefficients.
+    """
+
+    @staticmethod
+    def forward(ctx, x: Tensor, groups: int, weight: Tensor, bias: Tensor, eps: float) -> Tensor:
+        n, c, h, w = x.shape
+        per_group = c // groups
+        rows = x.permute(0, 2, 3, 1).reshape(n, h * w, c)  # a view of the channels-last memory
+        count = h * w * per_group
+        mean = rows.sum(1).view(n, groups, per_group).sum(2) / count  # (n, groups)
+        square_mean = (rows * rows).sum(1).view(n, groups, per_group).sum(2) / count
+        rstd = (square_mean - mean * mean).clamp_min(0).add(eps).rsqrt()
+        scale = rstd.repeat_interleave(per_group, 1) * weight  # (n, c)
+        shift = bias - mean.repeat_interleave(per_group, 1) * scale
+        ctx.save_for_backward(x, weight, mean, rstd)
+        ctx.groups = groups
+        out = torch.empty_like(x)  # channels-last like x; written through its (n, h*w, c) view, returned whole
+        torch.addcmul(shift.unsqueeze(1), rows, scale.unsqueeze(1), out=out.permute(0, 2, 3, 1).view(n, h * w, c))
+        return out  # not a view, so that LeakyReLU may run in place on it
+
+    @staticmethod
+    def backward(ctx, grad_output: Tensor):
+        x, weight, mean, rstd = ctx.saved_tensors
+        n, c, h, w = x.shape
+        groups = ctx.groups
+        per_group = c // groups
+        rows = x.permute(0, 2, 3, 1).reshape(n, h * w, c)
+        grad_rows = grad_output.permute(0, 2, 3, 1).reshape(n, h * w, c)  # copies only if not channels-last
+        grad_sum = grad_rows.sum(1)  # (n, c)
+        grad_dot_x = (grad_rows * rows).sum(1)  # (n, c)
+        group_mean, group_rstd = mean.repeat_interleave(per_group, 1), rstd.repeat_interleave(per_group, 1)
+        grad_dot_normalised = group_rstd * (grad_dot_x - group_mean * grad_sum)  # (n, c): sum of grad * x_hat
+        count = h * w * per_group
+        # dx = rstd * (dy * weight - mean(dy * weight) - x_hat * mean(dy * weight * x_hat)), means per group.
+        mean_grad = (weight * grad_sum).view(n, groups, per_group).sum(2) / count  # (n, groups)
+        mean_grad_normalised = (weight * grad_dot_normalised).view(n, groups, per_group).sum(2) / count
+        x_coefficient = -rstd * rstd * mean_grad_normalised
+        constant = -rstd * mean_grad - mean * x_coefficient
+        grad_x = torch.addcmul(constant.repeat_interleave(per_group, 1).unsqueeze(1), rows,
+                               x_coefficient.repeat_interleave(per_group, 1).unsqueeze(1))
+        grad_x.addcmul_(grad_rows, (group_rstd * weight).unsqueeze(1))
+        grad_x = grad_x.view(n, h, w, c).permute(0, 3, 1, 2)
+        return grad_x, None, grad_dot_normalised.sum(0), grad_sum.sum(0), None
+
+
 class ConvBlock(nn.Sequential):
     """3x3 convolution + GroupNorm + LeakyReLU, as in the supplement's UNet."""
 
     def __init__(self, in_channels: int, out_channels: int, stride: int = 1):
         super().__init__(
             nn.Conv2d(in_channels, out_channels, kernel_size=3, stride=stride, padding=1),
-            nn.GroupNorm(num_groups=4, num_channels=out_channels),
+            ChannelsLastGroupNorm(num_groups=4, num_channels=out_channels),
             nn.LeakyReLU(LEAKY_SLOPE, inplace=True),
         )
+
+
+def conv_block_of_concatenation(block: ConvBlock, parts: list[Tensor]) -> Tensor:
+    """`block(torch.cat(parts, dim=1))` without the concatenation: the convolution of a concatenation is
+    the sum of each part's convolution with its slice of the weight. On channels-last maps the
+    concatenation is an interleaving copy, and its gradient reaches each part as a strided slice that
+    the layers behind copy again."""
+    conv, *rest = block
+    weights = conv.weight.split([part.shape[1] for part in parts], dim=1)
+    x = F.conv2d(parts[0], weights[0], conv.bias, conv.stride, conv.padding)
+    for part, weight in zip(parts[1:], weights[1:], strict=True):
+        x = x.add_(F.conv2d(part, weight, None, conv.stride, conv.padding))  # convolutions keep no output for backward
+    for layer in rest:
+        x = layer(x)
+    return x
 
 
 class UNetEncoder(nn.Module):
@@ -418,10 +518,10 @@ class UNetDecoder(nn.Module):
 
     def forward(self, token_grid: Tensor, skips: list[Tensor]) -> Tensor:
         """token_grid: (N, D, H/16, W/16); skips from UNetEncoder. Returns (N, H, W)."""
-        x = self.bottleneck(torch.cat([token_grid, skips[-1]], dim=1))  # (N, 16, H/16, W/16)
+        x = conv_block_of_concatenation(self.bottleneck, [token_grid, skips[-1]])  # (N, 16, H/16, W/16)
         for block, skip in zip(self.up, reversed(skips[:-1]), strict=True):
             x = F.interpolate(x, size=skip.shape[-2:], mode="bilinear", align_corners=False)
-            x = block(torch.cat([x, skip], dim=1))  # (N, 16, h, w) at H/8, H/4, H/2
+            x = conv_block_of_concatenation(block, [x, skip])  # (N, 16, h, w) at H/8, H/4, H/2
         logit = self.to_logit(x)  # (N, 1, H/2, W/2)
         return F.interpolate(logit, scale_factor=2, mode="bilinear", align_corners=False).squeeze(1)
 
