@@ -2,12 +2,13 @@
 curve, evaluation per split), and the reference run's options and commands (tower: test_reference_run_tower)."""
 
 import json
+from pathlib import Path
 
 import pytest
 
 from demo_factory.convert.converter import read_dataset_provenance
 from demo_factory.instructions import shipped_human_instructions
-from demo_factory.tools.reference_run import main
+from demo_factory.tools.reference_run import main, selected_step
 
 
 @pytest.mark.slow
@@ -43,8 +44,15 @@ def test_unseen_reference_run_trains_on_paper_train_ids_and_curves_the_unseen_sp
         (r["fields"]["variation"], r["fields"]["instruction"]) for r in rows)
     assert [c["step"] for c in summary["learning_curve"]] == [1, 2]
     assert all(0.0 <= c["test_unseen_synthetic_success_rate"] <= 1.0 for c in summary["learning_curve"])
-    earlier = json.loads((out / "curve" / "000001" / "results.json").read_text())["splits"]
-    assert set(earlier) == {"train", "test_unseen_synthetic"}
+    # The curve's checkpoints on validation scenes (their own scene seeds); the best one on the test scenes.
+    for step in ("000001", "000002"):
+        validation = json.loads((out / "validation" / step / "results.json").read_text())
+        assert set(validation["splits"]) == {"train", "test_unseen_synthetic"}
+        test_seeds = {e["seed"] for e in map(json.loads, (out / "eval" / "episodes.jsonl").read_text().splitlines())}
+        assert test_seeds.isdisjoint(
+            e["seed"] for e in map(json.loads, (out / "validation" / step / "episodes.jsonl").read_text().splitlines()))
+    assert summary["selected_step"] == selected_step(summary["learning_curve"])
+    assert Path(summary["evaluated_checkpoint"]).parent.name == f"{summary['selected_step']:06d}"
     assert (out / "learning_curve.png").read_bytes().startswith(b"\x89PNG")
     # The policy trained with every synthetic instruction of its variations: the dataset lists them.
     assert (out / "dataset" / "train" / "meta" / "task_paraphrases.json").exists()
@@ -52,6 +60,12 @@ def test_unseen_reference_run_trains_on_paper_train_ids_and_curves_the_unseen_sp
     assert main(arguments) == 0
     again = json.loads((out / "reference_run.json").read_text())
     assert again["stage_seconds"] == {} and again["results"] == summary["results"]
+
+
+def test_the_checkpoint_kept_is_the_best_on_validation_the_later_on_a_tie():
+    curve = [{"step": step, "success_rate": rate} for step, rate in [(500, 0.5), (1000, 0.9), (1500, 0.9), (2000, 0.8)]]
+    assert selected_step(curve) == 1500
+    assert selected_step(curve[:1]) == 500
 
 
 def test_curve_must_divide_the_steps():
@@ -112,6 +126,15 @@ def test_make_reference_pins_its_recipe_and_train_arguments_replace_settings(tmp
     unseen = Namespace(**{**vars(run), "unseen": True, "train_arg": []})  # windows and the 7-channel stem
     command = hiveformer_run_command(unseen, tmp_path / "train", tmp_path / "out")
     assert set(UNSEEN_RECIPE) <= set(command) and "--policy.instruction_position_embeddings=false" not in command
+
+
+def test_hiveformer_runs_validate_a_checkpoint_about_every_100_steps_by_default():
+    from demo_factory.tools.reference_run import default_curve, parse_arguments
+
+    assert parse_arguments([]).curve == 15 and parse_arguments(["--steps", "1000"]).curve == 10
+    assert parse_arguments(["--unseen"]).curve == 3 and parse_arguments(["--policy", "act"]).curve == 1
+    assert parse_arguments(["--steps", "1500", "--curve", "3"]).curve == 3
+    assert default_curve(1001) == 7 and default_curve(2) == 1 and default_curve(150) == 1
 
 
 def test_checkpoints_are_saved_at_every_curve_point_and_at_most_500_steps_apart():
