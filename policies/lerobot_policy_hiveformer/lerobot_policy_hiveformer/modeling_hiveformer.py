@@ -413,6 +413,8 @@ class _ChannelsLastGroupNorm(torch.autograd.Function):
         count = h * w * per_group
         mean = rows.sum(1).view(n, groups, per_group).sum(2) / count  # (n, groups)
         square_mean = (rows * rows).sum(1).view(n, groups, per_group).sum(2) / count
+        # E[x²] - E[x]² in float32 (PyTorch's kernel runs Welford's update): exact to ~1e-7 of E[x²], ample
+        # for convolution outputs, whose means are within a few standard deviations of 0 (tests: 1e-5).
         rstd = (square_mean - mean * mean).clamp_min(0).add(eps).rsqrt()
         scale = rstd.repeat_interleave(per_group, 1) * weight  # (n, c)
         shift = bias - mean.repeat_interleave(per_group, 1) * scale
