@@ -45,10 +45,10 @@ def test_unseen_reference_run_trains_on_paper_train_ids_and_curves_the_unseen_sp
     assert [c["step"] for c in summary["learning_curve"]] == [1, 2]
     assert all(0.0 <= c["test_unseen_synthetic_success_rate"] <= 1.0 for c in summary["learning_curve"])
     # The curve's checkpoints on validation scenes (their own scene seeds); the best one on the test scenes.
+    test_seeds = {e["seed"] for e in map(json.loads, (out / "eval" / "episodes.jsonl").read_text().splitlines())}
     for step in ("000001", "000002"):
         validation = json.loads((out / "validation" / step / "results.json").read_text())
         assert set(validation["splits"]) == {"train", "test_unseen_synthetic"}
-        test_seeds = {e["seed"] for e in map(json.loads, (out / "eval" / "episodes.jsonl").read_text().splitlines())}
         assert test_seeds.isdisjoint(
             e["seed"] for e in map(json.loads, (out / "validation" / step / "episodes.jsonl").read_text().splitlines()))
     assert summary["selected_step"] == selected_step(summary["learning_curve"])

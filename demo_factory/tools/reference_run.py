@@ -407,9 +407,9 @@ def main(argv=None) -> int:
                             CURVE_SPLITS[args.unseen])
              if args.curve > 1 else [])
     chosen = selected_step(curve) if curve else args.steps
-    checkpoint = get_step_checkpoint_dir(train, args.steps, chosen) / "pretrained_model"
+    kept = get_step_checkpoint_dir(train, args.steps, chosen) / "pretrained_model"
     stage("eval", evaluation / "results.json", timings,
-          [str(BIN / "demo-factory"), "eval", "--policy.path", str(checkpoint), "--dataset", str(dataset),
+          [str(BIN / "demo-factory"), "eval", "--policy.path", str(kept), "--dataset", str(dataset),
            "--episodes", str(args.eval_episodes), "--out", str(evaluation), "--overwrite"], out)
 
     results = json.loads((evaluation / "results.json").read_text())
@@ -418,7 +418,7 @@ def main(argv=None) -> int:
                                               **({"dense_fps": DENSE_FPS, "action_space": "joints"} if dense else {})},
                "stage_seconds": timings, "train_step": train_log_timings(train_log.read_text() if train_log.exists() else ""), "wall_seconds_this_invocation": round(time.time() - began, 1),
                "learning_curve": curve, "selected_step": chosen,
-               "evaluated_checkpoint": str(checkpoint), "results": results}
+               "evaluated_checkpoint": str(kept), "results": results}
     (out / "reference_run.json").write_text(json.dumps(summary, indent=2, default=str) + "\n")
     print((evaluation / "results.md").read_text())
     if curve:
