@@ -55,3 +55,20 @@ def test_unknown_task_names_the_accepted_ones():
 def test_colour_spellings():
     assert canonical_colour("Grey") == "gray" and canonical_colour("NAVY") == "navy"
     assert canonical_colour("mauve") is None and len(COLOURS) == 20
+
+
+def test_the_tower_target_stands_out_from_the_table_in_brightness():
+    """At the reference run's 64x64 every camera sees the target square, and darker than the table: as bright as
+    the table, it was a few pixels that differed in hue only."""
+    import numpy as np
+
+    from demo_factory.sim.world import World
+
+    task = get_task("tower")
+    with World(image_size=(64, 64)) as world:
+        task.build_scene(world, task.variation(0), np.random.default_rng(3))
+        for name, view in world.render_cameras().items():
+            luminance = view.rgb.astype(float) @ [0.299, 0.587, 0.114] / 255
+            target, table = view.segmentation == task.target_body, view.segmentation == world.table
+            assert target.sum() >= 4, name
+            assert luminance[table].mean() - luminance[target].mean() > 0.3, name
