@@ -111,21 +111,21 @@ def test_train_arguments_replace_the_runs_own_setting_of_their_key():
 def test_make_reference_pins_its_recipe_and_train_arguments_replace_settings(tmp_path):
     from argparse import Namespace
 
-    from demo_factory.tools.reference_run import SEEN_RECIPE, UNSEEN_RECIPE, hiveformer_run_command
+    from demo_factory.tools.reference_run import SEEN_RECIPE, UNSEEN_RECIPE, hiveformer_run_command, policy_flags
 
     run = Namespace(task="push_buttons", unseen=False, steps=1500, batch_size=16, text_encoder="one_hot",
                     n_history=10, curve=1, train_arg=[])
     command = hiveformer_run_command(run, tmp_path / "train", tmp_path / "out")
-    assert set(SEEN_RECIPE) <= set(command) and "--policy.n_history=10" in command and "--save_freq=500" in command
+    assert set(policy_flags(SEEN_RECIPE)) <= set(command) and "--policy.n_history=10" in command and "--save_freq=500" in command
     run.train_arg = ["--policy.whole_episodes=true"]
     command = hiveformer_run_command(run, tmp_path / "train", tmp_path / "out")
     assert "--policy.whole_episodes=true" in command and "--policy.whole_episodes=false" not in command
     assert "--policy.stem_point_cloud=true" in command
     tower = Namespace(**{**vars(run), "task": "tower", "train_arg": []})  # the plugin's defaults
-    assert not set(SEEN_RECIPE) & set(hiveformer_run_command(tower, tmp_path / "train", tmp_path / "out"))
+    assert not set(policy_flags(SEEN_RECIPE)) & set(hiveformer_run_command(tower, tmp_path / "train", tmp_path / "out"))
     unseen = Namespace(**{**vars(run), "unseen": True, "train_arg": []})  # windows and the 7-channel stem
     command = hiveformer_run_command(unseen, tmp_path / "train", tmp_path / "out")
-    assert set(UNSEEN_RECIPE) <= set(command) and "--policy.instruction_position_embeddings=false" not in command
+    assert set(policy_flags(UNSEEN_RECIPE)) <= set(command) and "--policy.instruction_position_embeddings=false" not in command
 
 
 def test_hiveformer_runs_validate_a_checkpoint_about_every_100_steps_by_default():

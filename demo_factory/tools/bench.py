@@ -298,9 +298,9 @@ def _measure_compute():
 
 
 def train_step_against_kernel_floor(root: Path, steps: int, repeats: int = 10) -> dict:
-    """One reference-configuration training step (HiveFormer as `lerobot-train` builds it on `root`: whole
-    episodes, batch 16, one-hot instructions, no attention dropout; forward, backward, AdamW step; the
-    machine's torch threads) against its kernel floor: each of the step's convolutions and attention calls
+    """One reference-configuration training step (HiveFormer as `make reference`'s `lerobot-train` builds it
+    on `root`: its recipe, batch 16, one-hot instructions, no attention dropout; forward, backward, AdamW step;
+    the machine's torch threads) against its kernel floor: each of the step's convolutions and attention calls
     re-run alone with its backward pass (`measure_compute.kernels_alone_ms`, as the inference floor)."""
     from types import SimpleNamespace
 
@@ -310,10 +310,10 @@ def train_step_against_kernel_floor(root: Path, steps: int, repeats: int = 10) -
     from lerobot.policies.factory import make_policy, make_pre_post_processors
     from lerobot_policy_hiveformer import HiveformerConfig
 
-    from demo_factory.tools.reference_run import REFERENCE_BATCH_SIZE, REFERENCE_TEXT_ENCODER
+    from demo_factory.tools.reference_run import REFERENCE_BATCH_SIZE, REFERENCE_TEXT_ENCODER, SEEN_RECIPE
 
     torch.manual_seed(0)
-    config = HiveformerConfig(device="cpu", text_encoder=REFERENCE_TEXT_ENCODER, attention_dropout=0.0)
+    config = HiveformerConfig(device="cpu", text_encoder=REFERENCE_TEXT_ENCODER, attention_dropout=0.0, **SEEN_RECIPE)
     cfg = SimpleNamespace(dataset=DatasetConfig(repo_id="bench/history", root=str(root)), policy=config,
                           trainable_config=config, tolerance_s=1e-4, num_workers=0)
     dataset = factory.make_dataset(cfg)
@@ -335,7 +335,7 @@ def train_step_against_kernel_floor(root: Path, steps: int, repeats: int = 10) -
     step_ms = 1000 * float(np.median(durations[1:]))
     floor = _measure_compute().kernels_alone_ms(policy, lambda: policy.forward(batch), repeats, backward=True)
     floor_ms = sum(floor.values())
-    return {"batch_size": REFERENCE_BATCH_SIZE, "n_history": config.n_history,
+    return {"batch_size": REFERENCE_BATCH_SIZE, "n_history": config.n_history, **SEEN_RECIPE,
             "keyframes_in_batch": int((~batch["action_is_pad"]).sum()), "threads": torch.get_num_threads(),
             "train_step_ms": round(step_ms, 1), "kernel_floor_ms": floor, "kernel_floor_total_ms": round(floor_ms, 1),
             "step_over_floor": round(step_ms / floor_ms, 2)}
@@ -351,7 +351,7 @@ def bench_hiveformer_training(episodes: int, train_steps: int) -> dict:
     one-hot instructions, one loader worker) on a dataset generated at that size.
     """
     from demo_factory.convert.converter import ConvertOptions, convert
-    from demo_factory.tools.reference_run import train_command, train_log_timings
+    from demo_factory.tools.reference_run import SEEN_RECIPE, policy_flags, train_command, train_log_timings
 
     figures = {}
     with tempfile.TemporaryDirectory() as folder:
@@ -366,7 +366,7 @@ def bench_hiveformer_training(episodes: int, train_steps: int) -> dict:
             Path(folder) / f"converted{REFERENCE_IMAGE_SIZE}" / "train", steps=min(train_steps, 10))
         output_dir = Path(folder) / "train"
         command = train_command(Path(folder) / f"converted{REFERENCE_IMAGE_SIZE}" / "train", output_dir,
-                                steps=train_steps, log_freq=5)
+                                steps=train_steps, log_freq=5) + policy_flags(SEEN_RECIPE)
         result = subprocess.run(command, capture_output=True, text=True, env={**os.environ, "HF_HUB_OFFLINE": "1"})
         if result.returncode != 0:
             figures["lerobot_train"] = {"error": result.stderr.strip().splitlines()[-1] if result.stderr else "failed"}

@@ -83,12 +83,12 @@ UNSEEN = {"train_variations": 20, "episodes_per_variation": 15, "test_episodes_p
 CURVE_SPLITS = {False: ("train",), True: ("train", "test_unseen_synthetic")}
 # `make reference-unseen`: windows ending at every frame and the 7-channel CNN stem, with the instruction
 # position embeddings that tell "red, then blue" from "blue, then red".
-UNSEEN_RECIPE = ["--policy.whole_episodes=false", "--policy.stem_point_cloud=true"]
+UNSEEN_RECIPE = {"whole_episodes": False, "stem_point_cloud": True}  # HiveformerConfig fields
 # `make reference`: the same without instruction position embeddings. Its last checkpoint scored 97.5 / 52.5 /
 # 90.0 % on seeds 1000 / 2 / 3 (README: an annealed learning rate did not make that robust); the checkpoint
 # kept by validation scored 87.5 % on seed 2 and 95.0 % on seed 3. With the plugin's defaults (the authors': whole episodes, 4-channel stem) seed 1000 scored
 # 52.5 % after 1500 steps (the three-button variation 0/16, every failure its third press).
-SEEN_RECIPE = [*UNSEEN_RECIPE, "--policy.instruction_position_embeddings=false"]
+SEEN_RECIPE = UNSEEN_RECIPE | {"instruction_position_embeddings": False}
 DENSE_FPS = 20  # the dense export's control rate (ACT)
 RESUME_EVERY = 500  # training steps between checkpoints at most: what an interrupted run can lose
 TRAIN_SEED = 1000  # lerobot-train's own default
@@ -121,7 +121,7 @@ def hiveformer_run_command(args: argparse.Namespace, dataset_root: Path, output_
     command = train_command(dataset_root, output_dir, args.steps, args.batch_size, args.text_encoder,
                             args.n_history, save_freq=save_interval(args.steps, args.curve))
     if args.task == "push_buttons":
-        command += UNSEEN_RECIPE if args.unseen else SEEN_RECIPE
+        command += policy_flags(UNSEEN_RECIPE if args.unseen else SEEN_RECIPE)
     return with_arguments(command, args.train_arg)
 
 
@@ -161,6 +161,11 @@ def train_stage_command(train: Path, steps: int, fresh: list[str]) -> list[str]:
     if not last.exists():
         shutil.rmtree(train, ignore_errors=True)
     return fresh
+
+
+def policy_flags(settings: dict) -> list[str]:
+    """`lerobot-train` arguments that set these HiveformerConfig fields."""
+    return [f"--policy.{name}={str(value).lower()}" for name, value in settings.items()]
 
 
 def with_arguments(command: list[str], extra: list[str]) -> list[str]:
