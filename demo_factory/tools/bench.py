@@ -297,11 +297,12 @@ def _measure_compute():
     return module
 
 
-def train_step_against_kernel_floor(root: Path, steps: int, repeats: int = 10) -> dict:
-    """One reference-configuration training step (HiveFormer as `make reference`'s `lerobot-train` builds it
-    on `root`: its recipe, batch 16, one-hot instructions, no attention dropout; forward, backward, AdamW step;
-    the machine's torch threads) against its kernel floor: each of the step's convolutions and attention calls
-    re-run alone with its backward pass (`measure_compute.kernels_alone_ms`, as the inference floor)."""
+def train_step_against_kernel_floor(root: Path, steps: int, repeats: int = 10, settings: dict | None = None) -> dict:
+    """One reference-configuration training step (HiveFormer as `lerobot-train` builds it on `root`: batch 16,
+    one-hot instructions, no attention dropout, `settings` (HiveformerConfig fields, e.g. `make reference`'s
+    SEEN_RECIPE) over the plugin's defaults; forward, backward, AdamW step; the machine's torch threads)
+    against its kernel floor: each of the step's convolutions and attention calls re-run alone with its
+    backward pass (`measure_compute.kernels_alone_ms`, as the inference floor)."""
     from types import SimpleNamespace
 
     import torch
@@ -310,10 +311,10 @@ def train_step_against_kernel_floor(root: Path, steps: int, repeats: int = 10) -
     from lerobot.policies.factory import make_policy, make_pre_post_processors
     from lerobot_policy_hiveformer import HiveformerConfig
 
-    from demo_factory.tools.reference_run import REFERENCE_BATCH_SIZE, REFERENCE_TEXT_ENCODER, SEEN_RECIPE
+    from demo_factory.tools.reference_run import REFERENCE_BATCH_SIZE, REFERENCE_TEXT_ENCODER
 
     torch.manual_seed(0)
-    config = HiveformerConfig(device="cpu", text_encoder=REFERENCE_TEXT_ENCODER, attention_dropout=0.0, **SEEN_RECIPE)
+    config = HiveformerConfig(device="cpu", text_encoder=REFERENCE_TEXT_ENCODER, attention_dropout=0.0, **(settings or {}))
     cfg = SimpleNamespace(dataset=DatasetConfig(repo_id="bench/history", root=str(root)), policy=config,
                           trainable_config=config, tolerance_s=1e-4, num_workers=0)
     dataset = factory.make_dataset(cfg)
@@ -335,7 +336,8 @@ def train_step_against_kernel_floor(root: Path, steps: int, repeats: int = 10) -
     step_ms = 1000 * float(np.median(durations[1:]))
     floor = _measure_compute().kernels_alone_ms(policy, lambda: policy.forward(batch), repeats, backward=True)
     floor_ms = sum(floor.values())
-    return {"batch_size": REFERENCE_BATCH_SIZE, "n_history": config.n_history, **SEEN_RECIPE,
+    recipe = {name: getattr(config, name) for name in ("whole_episodes", "stem_point_cloud")}
+    return {"batch_size": REFERENCE_BATCH_SIZE, "n_history": config.n_history, **recipe,
             "keyframes_in_batch": int((~batch["action_is_pad"]).sum()), "threads": torch.get_num_threads(),
             "train_step_ms": round(step_ms, 1), "kernel_floor_ms": floor, "kernel_floor_total_ms": round(floor_ms, 1),
             "step_over_floor": round(step_ms / floor_ms, 2)}
@@ -346,9 +348,11 @@ def bench_hiveformer_training(episodes: int, train_steps: int) -> dict:
     the reference run's CPU configuration.
 
     Items/s are measured on 128x128 push_buttons keyframe datasets (3 cameras, history 6, every
-    observation key and the action), stock vs the plugin's reader. `updt_s` / `data_s` come from
-    `lerobot-train --policy.type=hiveformer` with the reference run's settings (its image size, batch,
-    one-hot instructions, one loader worker) on a dataset generated at that size.
+    observation key and the action), stock vs the plugin's reader. The training step against its kernel
+    floor is measured in `make reference`'s recipe and in the plugin's defaults (the authors' whole-episode
+    samples). `updt_s` / `data_s` come from `lerobot-train --policy.type=hiveformer` with the reference run's
+    settings (its image size, batch, one-hot instructions, one loader worker, its recipe) on a dataset
+    generated at that size.
     """
     from demo_factory.convert.converter import ConvertOptions, convert
     from demo_factory.tools.reference_run import SEEN_RECIPE, policy_flags, train_command, train_log_timings
@@ -362,11 +366,14 @@ def bench_hiveformer_training(episodes: int, train_steps: int) -> dict:
             convert(ConvertOptions(inputs=[raw], out=root, repo_id="bench/history", val_ratio=0.0, progress=False),
                     log=lambda _: None)
         figures["history_reading_128px"] = _history_items_per_second(Path(folder) / "converted128" / "train", 6, 120)
+        reference = Path(folder) / f"converted{REFERENCE_IMAGE_SIZE}" / "train"
+        # make reference's recipe (windows, 7-channel stem), then the plugin's defaults (the authors' whole episodes)
         figures["train_step_against_kernel_floor"] = train_step_against_kernel_floor(
-            Path(folder) / f"converted{REFERENCE_IMAGE_SIZE}" / "train", steps=min(train_steps, 10))
+            reference, steps=min(train_steps, 10), settings=SEEN_RECIPE)
+        figures["train_step_against_kernel_floor_whole_episodes"] = train_step_against_kernel_floor(
+            reference, steps=min(train_steps, 10))
         output_dir = Path(folder) / "train"
-        command = train_command(Path(folder) / f"converted{REFERENCE_IMAGE_SIZE}" / "train", output_dir,
-                                steps=train_steps, log_freq=5) + policy_flags(SEEN_RECIPE)
+        command = train_command(reference, output_dir, steps=train_steps, log_freq=5) + policy_flags(SEEN_RECIPE)
         result = subprocess.run(command, capture_output=True, text=True, env={**os.environ, "HF_HUB_OFFLINE": "1"})
         if result.returncode != 0:
             figures["lerobot_train"] = {"error": result.stderr.strip().splitlines()[-1] if result.stderr else "failed"}
