@@ -89,6 +89,17 @@ def test_closing_the_gripper_above_the_cube_is_grasp_missed():
     assert (record["failure_reason"], record["failure_subgoal"]) == ("grasp missed", 1), record["failure_detail"]
 
 
+def test_closing_the_gripper_in_the_air_near_no_cube_is_grasp_missed_not_the_step_limit():
+    def in_the_air(env):
+        over = env.expert_keyframes[0]  # 10 cm above the first cube
+        return [over, raised(over, 0.0, gripper_open=0.0)]
+
+    record = run("tower", Scripted(in_the_air))
+    assert (record["failure_reason"], record["failure_subgoal"]) == ("grasp missed", 1), record["failure_detail"]
+    assert record["failure_detail"].startswith("the gripper closed near no cube, ")
+    assert 6 <= int(record["failure_detail"].split(", ")[1].split(" cm")[0]) <= 20, record["failure_detail"]
+
+
 def test_letting_go_of_a_lifted_cube_high_above_the_table_is_cube_dropped():
     def drop(env):
         grasp = env.expert_keyframes[:4]

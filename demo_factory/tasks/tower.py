@@ -76,6 +76,7 @@ class Tower(Task):
         # highest lift while held (m above the table), where it was let go, the instructed cubes that stood at
         # their level freely.
         self.closed_near: set[str] = set()
+        self.closed_near_none: list[dict[str, float]] = []  # each cube's distance at each close far from all
         self.lifted = {colour: 0.0 for colour in self.cubes}
         self.was_in_place: set[str] = set()
         self.released: dict[str, float] = {}  # xy distance from the target where each cube was last let go
@@ -123,6 +124,8 @@ class Tower(Task):
             nearest = min(distances, key=distances.get)
             if distances[nearest] <= NEAR_GRASP:
                 self.closed_near.add(nearest)
+            else:
+                self.closed_near_none.append(distances)
         self._gripper = command
         if world.step_count % TRACK_EVERY:
             return
@@ -150,7 +153,8 @@ class Tower(Task):
         - "grasp missed": the gripper closed at it but never lifted it;
         - "wrong cube placed": another cube (a distractor, or a later level's) stands at this level;
         - "wrong cube picked": it was never lifted, another cube (not yet in place) was;
-        - else None (e.g. nothing was ever touched: the step limit).
+        - "grasp missed": the gripper closed, but near no cube;
+        - else None (e.g. the gripper never closed: the step limit).
         """
         words = self.instructed.words
         level = next((k for k, colour in enumerate(words) if not self.in_place(world, colour, k)), None)
@@ -196,6 +200,10 @@ class Tower(Task):
             which = " and ".join(f"{c} ({self._role(c)})" for c in picked)
             return Failure("wrong cube picked", subgoal,
                            f"the gripper lifted the {which} cube{'s' if len(picked) > 1 else ''} where {colour} was next")
+        if self.closed_near_none:
+            nearest = min(distances[colour] for distances in self.closed_near_none)
+            return Failure("grasp missed", subgoal, f"the gripper closed near no cube, {100 * nearest:.0f} cm from the "
+                           f"{colour} cube at the nearest")
         return None
 
     def _role(self, colour: str) -> str:
