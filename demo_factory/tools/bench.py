@@ -368,10 +368,9 @@ def bench_hiveformer_training(episodes: int, train_steps: int) -> dict:
         figures["history_reading_128px"] = _history_items_per_second(Path(folder) / "converted128" / "train", 6, 120)
         reference = Path(folder) / f"converted{REFERENCE_IMAGE_SIZE}" / "train"
         # make reference's recipe (windows, 7-channel stem), then the plugin's defaults (the authors' whole episodes)
-        figures["train_step_against_kernel_floor"] = train_step_against_kernel_floor(
-            reference, steps=min(train_steps, 10), settings=SEEN_RECIPE)
-        figures["train_step_against_kernel_floor_whole_episodes"] = train_step_against_kernel_floor(
-            reference, steps=min(train_steps, 10))
+        for name, settings in (("", SEEN_RECIPE), ("_whole_episodes", None)):
+            figures[f"train_step_against_kernel_floor{name}"] = train_step_against_kernel_floor(
+                reference, steps=min(train_steps, 10), settings=settings)
         output_dir = Path(folder) / "train"
         command = train_command(reference, output_dir, steps=train_steps, log_freq=5) + policy_flags(SEEN_RECIPE)
         result = subprocess.run(command, capture_output=True, text=True, env={**os.environ, "HF_HUB_OFFLINE": "1"})

@@ -86,9 +86,9 @@ CURVE_SPLITS = {False: ("train",), True: ("train", "test_unseen_synthetic")}
 UNSEEN_RECIPE = {"whole_episodes": False, "stem_point_cloud": True}  # HiveformerConfig fields
 # `make reference`: the same without instruction position embeddings. Its last checkpoint scored 97.5 / 52.5 /
 # 90.0 % on seeds 1000 / 2 / 3 (README: an annealed learning rate did not make that robust); the checkpoint
-# kept by validation 97.5 / 90.0 / 95.0 % (README, session 18). With the
-# plugin's defaults (the authors': whole episodes, 4-channel stem) seed 1000 scored 52.5 % after 1500 steps
-# (the three-button variation 0/16, every failure its third press).
+# kept by validation 97.5 / 90.0 / 95.0 % (README, session 18). With the plugin's defaults (the authors': whole
+# episodes, 4-channel stem) seed 1000 scored 52.5 % after 1500 steps (the three-button variation 0/16, every
+# failure its third press).
 SEEN_RECIPE = UNSEEN_RECIPE | {"instruction_position_embeddings": False}
 DENSE_FPS = 20  # the dense export's control rate (ACT)
 RESUME_EVERY = 500  # training steps between checkpoints at most: what an interrupted run can lose
