@@ -17,11 +17,14 @@ from hiveformer_fixtures import (
 from lerobot.policies.factory import make_policy, make_pre_post_processors
 from lerobot_policy_hiveformer import HiveformerConfig, HiveformerPolicy, modeling_hiveformer
 from lerobot_policy_hiveformer.modeling_hiveformer import (
+    BlockCausalLayer,
     ChannelsLastGroupNorm,
     ClipInstructionEncoder,
     ConvBlock,
     KeyframeObservations,
     MultiHeadAttention,
+    PackedSteps,
+    block_causal_mask,
     gripper_mark,
     keyframe_observations,
     project_to_pixels,
@@ -139,6 +142,37 @@ def test_attention_padded_to_the_fast_head_dimension_gives_the_same_outputs(monk
     plain = outputs_and_gradients()
     for with_padding, without in zip(padded, plain, strict=True):
         assert torch.allclose(with_padding, without, atol=1e-6)
+
+
+@pytest.mark.parametrize("use_history", [True, False])
+def test_packed_layer_equals_the_masked_layer_on_the_real_steps(use_history):
+    """The training path runs each layer on the real steps only, one attention call per step ordinal
+    (`BlockCausalLayer.forward_packed`); its outputs and gradients must be the masked layer's on the same
+    window, whatever the padding of each sample (none, some, all but one step) and of its instruction."""
+    torch.manual_seed(0)
+    config = HiveformerConfig(device="cpu", text_encoder="one_hot", attention_dropout=0.0, dropout=0.0,
+                              n_history=6, use_history=use_history)
+    layer = BlockCausalLayer(config)
+    tokens, instruction = torch.randn(5, 6, 7, 64), torch.randn(5, 3, 64)
+    step_valid = torch.tensor([[0, 0, 1, 1, 1, 1], [1] * 6, [0, 0, 0, 0, 0, 1], [0, 1, 1, 1, 1, 1], [0, 0, 0, 1, 1, 1]])
+    step_valid = step_valid.bool()
+    instruction_mask = torch.tensor([[1, 1, 0], [1, 1, 1], [1, 0, 0], [1, 1, 1], [1, 1, 0]]).bool()
+    packing = PackedSteps.of(step_valid)
+    assert packing.counts == [5, 4, 4, 3, 2, 1]
+    weights = torch.linspace(-1, 1, int(step_valid.sum()) * 7 * 64).view(-1, 7, 64)
+
+    def outputs_and_gradients(packed: bool):
+        x, words = tokens.clone().requires_grad_(), instruction.clone().requires_grad_()
+        if packed:
+            out = layer.forward_packed(x[packing.sample, packing.step], words, instruction_mask, packing)
+        else:
+            allowed = block_causal_mask(step_valid, instruction_mask, 7, use_history, slice(None))
+            out = layer(x, words, allowed)[packing.sample, packing.step]
+        (out * weights).sum().backward()
+        return out.detach(), x.grad, words.grad
+
+    for packed, masked in zip(outputs_and_gradients(True), outputs_and_gradients(False), strict=True):
+        assert torch.allclose(packed, masked, atol=1e-5)
 
 
 def test_quaternion_loss_is_sign_invariant(tiny_dataset_root):
