@@ -566,15 +566,17 @@ class MultiHeadAttention(nn.Module):
         key_mask = None
         if not bool(instruction_mask.all()):
             key_mask = F.pad(instruction_mask[packing.order], (0, steps * per_step), value=True)[:, None, None, :]
-        attended, start = [], 0
-        for ordinal, count in enumerate(packing.counts):
-            stop = length + (ordinal + 1) * per_step
-            keys = slice(None, stop)
-            if not use_history:  # the instruction and the step's own tokens
-                keys = torch.cat([torch.arange(length), torch.arange(stop - per_step, stop)])
-            mask = None if key_mask is None else key_mask[:count, ..., keys]
-            attended.append(self._attend(q[start : start + count], k[:count, :, keys], v[:count, :, keys], mask))
-            start += count
+        stops = [length + (ordinal + 1) * per_step for ordinal in range(steps)]
+        if use_history:
+            bounds = list(zip(packing.counts, stops, strict=True))
+            keys, values = KeyPrefixes.apply(k, bounds), KeyPrefixes.apply(v, bounds)
+            masks = [None if key_mask is None else key_mask[:count, ..., :stop] for count, stop in bounds]
+        else:  # the instruction and the step's own tokens
+            own = [torch.cat([torch.arange(length), torch.arange(stop - per_step, stop)]) for stop in stops]
+            keys, values = ([x[:count, :, i] for count, i in zip(packing.counts, own, strict=True)] for x in (k, v))
+            masks = [None if key_mask is None else key_mask[:count, ..., i] for count, i in zip(packing.counts, own)]
+        queries = q.split(packing.counts)  # the r-th steps of the samples that have one
+        attended = [self._attend(*inputs) for inputs in zip(queries, keys, values, masks, strict=True)]
         return self._output(torch.cat(attended), x.shape)
 
     def _heads(self, x: Tensor, parts: int = 1) -> Tensor | tuple[Tensor, ...]:
@@ -603,6 +605,28 @@ class MultiHeadAttention(nn.Module):
         """(..., heads, S, padded head_dim) -> (..., S, D) through the output projection."""
         head_dim = shape[-1] // self.num_heads
         return self.out(attended[..., :head_dim].transpose(-2, -3).reshape(shape))
+
+
+class KeyPrefixes(torch.autograd.Function):
+    """keys (B, heads, S, hd) -> the views keys[:count, :, :stop] for each (count, stop) of `bounds`.
+
+    The backward pass adds each view's gradient into one zeroed buffer. Sliced one by one, each view's
+    backward pass would zero-fill a gradient of the keys' full size and add it to the others: for a tower
+    window of 25 steps, 25 full-size buffers (~40 MB each) per keys and values tensor.
+    """
+
+    @staticmethod
+    def forward(ctx, keys: Tensor, bounds: list[tuple[int, int]]) -> tuple[Tensor, ...]:
+        ctx.bounds, ctx.like = bounds, {"size": keys.shape, "dtype": keys.dtype, "device": keys.device}
+        return tuple(keys[:count, :, :stop] for count, stop in bounds)
+
+    @staticmethod
+    def backward(ctx, *grads: Tensor):
+        total = torch.zeros(**ctx.like)
+        for (count, stop), grad in zip(ctx.bounds, grads, strict=True):
+            if grad is not None:
+                total[:count, :, :stop] += grad
+        return total, None
 
 
 @dataclass
