@@ -47,18 +47,16 @@ def depth_to_world_points(depth_m: Tensor, calibration: Tensor) -> Tensor:
     Returns (..., 3, H, W).
     """
     height, width = depth_m.shape[-2:]
-    fx, fy, cx, cy = (calibration[..., i, None, None] for i in range(4))
+    fx, fy, cx, cy = (calibration[..., i, None, None, None] for i in range(4))  # (..., 1, 1, 1)
     world_from_camera = calibration[..., 4:].reshape(*calibration.shape[:-1], 4, 4)
-    v, u = torch.meshgrid(
-        torch.arange(height, device=depth_m.device, dtype=depth_m.dtype),
-        torch.arange(width, device=depth_m.device, dtype=depth_m.dtype),
-        indexing="ij",
-    )
-    camera_points = torch.stack([(u - cx) * depth_m / fx, (v - cy) * depth_m / fy, depth_m], dim=-3)
-    rotation = world_from_camera[..., :3, :3]
-    translation = world_from_camera[..., :3, 3]
-    world = torch.einsum("...ij,...jhw->...ihw", rotation, camera_points)
-    return world + translation[..., :, None, None]
+    rotation = world_from_camera[..., :3, :3, None, None]  # (..., 3, 3, 1, 1)
+    u = torch.arange(width, device=depth_m.device, dtype=depth_m.dtype)
+    v = torch.arange(height, device=depth_m.device, dtype=depth_m.dtype)[:, None]
+    # world = R [(u - cx) d / fx, (v - cy) d / fy, d] + t = d * ray + t, with the pixel's ray built from a row
+    # and a column term: two passes over the (..., 3, H, W) maps instead of one per coordinate and product.
+    row_term = rotation[..., 1, :, :] * ((v - cy) / fy) + rotation[..., 2, :, :]  # (..., 3, H, 1)
+    ray = rotation[..., 0, :, :] * ((u - cx) / fx) + row_term  # (..., 3, 1, W) + (..., 3, H, 1)
+    return torch.addcmul(world_from_camera[..., :3, 3, None, None], ray, depth_m.unsqueeze(-3))
 
 
 def project_to_pixels(points: Tensor, calibration: Tensor) -> tuple[Tensor, Tensor]:
