@@ -147,21 +147,23 @@ def test_attention_padded_to_the_fast_head_dimension_gives_the_same_outputs(monk
 @pytest.mark.parametrize("use_history", [True, False])
 def test_packed_layer_equals_the_masked_layer_on_the_real_steps(use_history):
     """The training path runs each layer on the real steps only, one attention call per step ordinal
-    (`BlockCausalLayer.forward_packed`); its outputs and gradients must be the masked layer's on the same
-    window, whatever the padding of each sample (none, some, all but one step) and of its instruction."""
+    (`BlockCausalLayer.forward_packed`); its outputs and gradients (inputs' and parameters') must be the
+    masked layer's on the same window, whatever the padding of each sample (none, some, all but one step,
+    every step) and of its instruction."""
     torch.manual_seed(0)
     config = HiveformerConfig(device="cpu", text_encoder="one_hot", attention_dropout=0.0, dropout=0.0,
                               n_history=6, use_history=use_history)
     layer = BlockCausalLayer(config)
-    tokens, instruction = torch.randn(5, 6, 7, 64), torch.randn(5, 3, 64)
-    step_valid = torch.tensor([[0, 0, 1, 1, 1, 1], [1] * 6, [0, 0, 0, 0, 0, 1], [0, 1, 1, 1, 1, 1], [0, 0, 0, 1, 1, 1]])
-    step_valid = step_valid.bool()
-    instruction_mask = torch.tensor([[1, 1, 0], [1, 1, 1], [1, 0, 0], [1, 1, 1], [1, 1, 0]]).bool()
+    tokens, instruction = torch.randn(6, 6, 7, 64), torch.randn(6, 3, 64)
+    step_valid = torch.tensor([[0, 0, 1, 1, 1, 1], [1] * 6, [0] * 6, [0, 0, 0, 0, 0, 1], [0, 1, 1, 1, 1, 1],
+                               [0, 0, 0, 1, 1, 1]]).bool()
+    instruction_mask = torch.tensor([[1, 1, 0], [1, 1, 1], [1, 1, 1], [1, 0, 0], [1, 1, 1], [1, 1, 0]]).bool()
     packing = PackedSteps.of(step_valid)
     assert packing.counts == [5, 4, 4, 3, 2, 1]
     weights = torch.linspace(-1, 1, int(step_valid.sum()) * 7 * 64).view(-1, 7, 64)
 
     def outputs_and_gradients(packed: bool):
+        layer.zero_grad()
         x, words = tokens.clone().requires_grad_(), instruction.clone().requires_grad_()
         if packed:
             out = layer.forward_packed(x[packing.sample, packing.step], words, instruction_mask, packing)
@@ -169,10 +171,27 @@ def test_packed_layer_equals_the_masked_layer_on_the_real_steps(use_history):
             allowed = block_causal_mask(step_valid, instruction_mask, 7, use_history, slice(None))
             out = layer(x, words, allowed)[packing.sample, packing.step]
         (out * weights).sum().backward()
-        return out.detach(), x.grad, words.grad
+        return [out.detach(), x.grad, words.grad, *(p.grad for p in layer.parameters())]
 
     for packed, masked in zip(outputs_and_gradients(True), outputs_and_gradients(False), strict=True):
-        assert torch.allclose(packed, masked, atol=1e-5)
+        assert torch.allclose(packed, masked, rtol=1e-4, atol=1e-5)  # sums over other orders
+
+
+def test_world_points_are_the_camera_points_rotated_and_translated():
+    """depth_to_world_points (built as depth x ray + translation) against R @ [(u-cx) d/fx, (v-cy) d/fy, d] + t
+    with a rotation that mixes every axis."""
+    torch.manual_seed(0)
+    rotation = torch.linalg.qr(torch.randn(2, 3, 3)).Q
+    world_from_camera = torch.eye(4).repeat(2, 1, 1)
+    world_from_camera[:, :3, :3], world_from_camera[:, :3, 3] = rotation, torch.randn(2, 3)
+    intrinsics = torch.tensor([[50.0, 60.0, 15.5, 11.0], [40.0, 45.0, 14.0, 12.5]])
+    calibration = torch.cat([intrinsics, world_from_camera.flatten(1)], dim=1)  # (2, 20)
+    depth = torch.rand(2, 24, 32) + 0.5
+    v, u = torch.meshgrid(torch.arange(24.0), torch.arange(32.0), indexing="ij")
+    fx, fy, cx, cy = (intrinsics[:, i, None, None] for i in range(4))
+    camera = torch.stack([(u - cx) * depth / fx, (v - cy) * depth / fy, depth], dim=1)  # (2, 3, H, W)
+    expected = torch.einsum("bij,bjhw->bihw", rotation, camera) + world_from_camera[:, :3, 3, None, None]
+    assert torch.allclose(modeling_hiveformer.depth_to_world_points(depth, calibration), expected, atol=1e-5)
 
 
 def test_quaternion_loss_is_sign_invariant(tiny_dataset_root):

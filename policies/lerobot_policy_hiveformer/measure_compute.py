@@ -99,7 +99,7 @@ def timed_parts(policy) -> list[dict[str, float]]:
     model = policy.model
     parts = [("encoder", model.encoder, "forward"), ("transformer", model, "contextualise"),
              ("heads", model, "decode_steps"), ("decoder", model.decoder, "forward")]
-    parts += [("attention", attention, "forward") for layer in model.layers
+    parts += [("attention", attention, "_attend") for layer in model.layers  # every path's attention call
               for attention in (layer.cross_attention, layer.self_attention)]
     for name, owner, method in parts:
         setattr(owner, method, timed(name, getattr(owner, method)))

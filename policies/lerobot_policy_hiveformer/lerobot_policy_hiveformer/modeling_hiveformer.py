@@ -552,30 +552,28 @@ class MultiHeadAttention(nn.Module):
         (about half the window's scores) and the padding steps, which the masked form computes and throws
         away: a tower training step's attention kernels (history 25, batch 16) take 0.2 s instead of 1.0 s.
         """
-        batch, steps, per_step = packing.batch, len(packing.counts), x.shape[1]
+        steps, per_step = len(packing.counts), x.shape[1]
         q = self._heads(self.query(x))  # (M, heads, N, head_dim)
-        # Keys of each sample (sorted as `packing`): its instruction, then its steps in order; positions past
+        kv, instruction_kv = self.key_value(x), self.key_value(instruction)  # (M, N, 2D), (B, L, 2D)
+        key_mask = None if bool(instruction_mask.all()) else instruction_mask
+        if not use_history:  # every step on its own: its instruction and its own tokens, one call for all
+            k, v = self._heads(torch.cat([instruction_kv[packing.sample], kv], dim=1), 2)
+            if key_mask is not None:
+                key_mask = F.pad(key_mask[packing.sample], (0, per_step), value=True)[:, None, None, :]
+            return self._output(self._attend(q, k, v, key_mask), x.shape)
+        # Keys of each sample (ranked as `packing`): its instruction, then its steps in order; positions past
         # a sample's last step stay zero and no query reaches them.
-        kv = self.key_value(x)  # (M, N, 2D)
-        aligned = kv.new_zeros(batch, steps, *kv.shape[1:]).index_put((packing.rank, packing.ordinal), kv)
-        instruction_kv = self.key_value(instruction)[packing.order]  # (B, L, 2D)
-        k, v = self._heads(torch.cat([instruction_kv, aligned.flatten(1, 2)], dim=1), 2)  # (B, heads, L+T*N, hd)
+        aligned = kv.new_zeros(packing.batch, steps, *kv.shape[1:]).index_put((packing.rank, packing.ordinal), kv)
+        keys = torch.cat([instruction_kv[packing.order], aligned.flatten(1, 2)], dim=1)  # (B, L + T*N, 2D)
+        k, v = self._heads(keys, 2)  # (B, heads, L + T*N, head_dim)
         length = instruction.shape[1]
-        key_mask = None
-        if not bool(instruction_mask.all()):
-            key_mask = F.pad(instruction_mask[packing.order], (0, steps * per_step), value=True)[:, None, None, :]
-        stops = [length + (ordinal + 1) * per_step for ordinal in range(steps)]
-        if use_history:
-            bounds = list(zip(packing.counts, stops, strict=True))
-            keys, values = KeyPrefixes.apply(k, bounds), KeyPrefixes.apply(v, bounds)
-            masks = [None if key_mask is None else key_mask[:count, ..., :stop] for count, stop in bounds]
-        else:  # the instruction and the step's own tokens
-            own = [torch.cat([torch.arange(length), torch.arange(stop - per_step, stop)]) for stop in stops]
-            keys, values = ([x[:count, :, i] for count, i in zip(packing.counts, own, strict=True)] for x in (k, v))
-            masks = [None if key_mask is None else key_mask[:count, ..., i] for count, i in zip(packing.counts, own)]
+        bounds = [(count, length + (ordinal + 1) * per_step) for ordinal, count in enumerate(packing.counts)]
+        if key_mask is not None:
+            key_mask = F.pad(key_mask[packing.order], (0, steps * per_step), value=True)[:, None, None, :]
+        masks = [None if key_mask is None else key_mask[:count, ..., :stop] for count, stop in bounds]
         queries = q.split(packing.counts)  # the r-th steps of the samples that have one
-        attended = [self._attend(*inputs) for inputs in zip(queries, keys, values, masks, strict=True)]
-        return self._output(torch.cat(attended), x.shape)
+        inputs = zip(queries, KeyPrefixes.apply(k, bounds), KeyPrefixes.apply(v, bounds), masks, strict=True)
+        return self._output(torch.cat([self._attend(*call) for call in inputs]), x.shape)
 
     def _heads(self, x: Tensor, parts: int = 1) -> Tensor | tuple[Tensor, ...]:
         """(B, S, parts * D) -> `parts` tensors (B, heads, S, head_dim), zero-padded to FUSED_CPU_MIN_HEAD_DIM
@@ -609,13 +607,14 @@ class KeyPrefixes(torch.autograd.Function):
     """keys (B, heads, S, hd) -> the views keys[:count, :, :stop] for each (count, stop) of `bounds`.
 
     The backward pass adds each view's gradient into one zeroed buffer. Sliced one by one, each view's
-    backward pass would zero-fill a gradient of the keys' full size and add it to the others: for a tower
-    window of 25 steps, 25 full-size buffers (~40 MB each) per keys and values tensor.
+    backward pass would allocate and zero-fill a gradient of the keys' full size to be added to the others:
+    for a tower window of 25 steps, 25 such buffers (~40 MB each) for the keys and as many for the values.
     """
 
     @staticmethod
     def forward(ctx, keys: Tensor, bounds: list[tuple[int, int]]) -> tuple[Tensor, ...]:
         ctx.bounds, ctx.like = bounds, {"size": keys.shape, "dtype": keys.dtype, "device": keys.device}
+        ctx.set_materialize_grads(False)  # a view without gradient adds nothing
         return tuple(keys[:count, :, :stop] for count, stop in bounds)
 
     @staticmethod
@@ -652,7 +651,8 @@ class PackedSteps:
         steps_first = torch.sort((~step_valid[order]).to(torch.uint8), dim=1, stable=True).indices
         counts = torch.bincount(real, minlength=step_valid.shape[1] + 1).flip(0).cumsum(0).flip(0)[1:]
         counts = [c for c in counts.tolist() if c > 0]
-        ordinal = torch.repeat_interleave(torch.arange(len(counts), device=device), torch.tensor(counts, device=device))
+        repeats = torch.tensor(counts, dtype=torch.long, device=device)
+        ordinal = torch.repeat_interleave(torch.arange(len(counts), device=device), repeats)
         rank = torch.cat([torch.arange(c, device=device) for c in counts]) if counts else ordinal
         return cls(batch=step_valid.shape[0], order=order, counts=counts, rank=rank, ordinal=ordinal,
                    sample=order[rank], step=steps_first[rank, ordinal])
@@ -707,6 +707,9 @@ def block_causal_mask(
     step_valid: Tensor, instruction_mask: Tensor, per_step: int, use_history: bool, query_steps: slice
 ) -> Tensor | None:
     """Which keys each query token of the steps `query_steps` may attend to: (B, 1, Q*N, L + T*N) bool.
+
+    The rollout's last layer uses it for the newest step; training runs the packed layers instead
+    (`BlockCausalLayer.forward_packed`, the same values; its test compares the two on whole windows).
 
     Keys are the instruction tokens (L, `instruction_mask` (B, L)), then the N tokens of each of the T
     steps of the window: the query's own step and, with history, the earlier ones, unless padding
@@ -847,7 +850,8 @@ class HiveformerModel(nn.Module):
         instruction_mask: Tensor,
         last_step_only: bool = False,
     ) -> Tensor:
-        """Block-causal transformer over a window. tokens (B, T, N, D) -> (B, T, N, D).
+        """Block-causal transformer over a window. tokens (B, T, N, D) -> (B, T, N, D), zero at the padding
+        steps (`step_valid` False), which take no part: the layers run on the real steps only, packed.
 
         With last_step_only, the last layer computes only the newest step's outputs -> (B, 1, N, D): the
         same values (earlier steps never see later ones), at a fraction of the cost during rollouts.
@@ -865,7 +869,7 @@ class HiveformerModel(nn.Module):
         if layers:  # on the real steps only, packed; padding steps come back as zeros (nothing attends to them)
             packing = PackedSteps.of(step_valid)
             packed = x[packing.sample, packing.step]  # (M, N, D)
-            for layer in layers:
+            for layer in layers if packing.counts else ():
                 packed = layer.forward_packed(packed, instruction_tokens, instruction_mask, packing)
             x = x.new_zeros(x.shape).index_put((packing.sample, packing.step), packed)
         if not last_step_only:
@@ -925,7 +929,8 @@ class HiveformerModel(nn.Module):
         """Predictions for every step -> (B, T, ...), or for the steps where `decode` (B, T) -> (M, ...).
 
         The encoder runs on the real steps (which the decoded ones attend to) and the decoded ones only:
-        padding steps are masked out of attention, so encoding them would change nothing. The heads run on
+        padding steps are left out of the transformer, so encoding them would change nothing (a decoded
+        padding step gets a zero context). The heads run on
         the decoded steps only, as the authors' code runs them on the unpadded steps only.
         """
         decode_all = decode is None
