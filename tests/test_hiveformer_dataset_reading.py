@@ -108,6 +108,33 @@ def test_whole_episodes_off_keeps_the_stock_windows(tiny_dataset_root):
         assert_same_items(stock[index], dataset[index])
 
 
+
+def test_kept_rows_give_the_stock_items_and_spare_the_decoding(tiny_dataset_root, monkeypatch):
+    """A training reader keeps the history rows it decoded (up to `history_cache_mib`): its items stay the
+    stock reader's, a second epoch decodes nothing, and a budget that holds a few rows holds no more."""
+    config, _ = tiny_config(tiny_dataset_root, n_history=6, whole_episodes=False)
+    dataset = factory.make_dataset(training_config(tiny_dataset_root, config))
+    stock = history_dataset(tiny_dataset_root, history=6)
+    reader = dataset.reader
+    assert reader.cache_bytes == config.history_cache_mib * 2**20 > 0
+    for index in range(len(dataset)):
+        assert_same_items(stock[index], dataset[index])
+    (kept,) = reader.__dict__["_decoded_row_caches"][1].values()
+    assert sorted(kept) == list(range(len(dataset)))  # every row, decoded once
+    with monkeypatch.context() as patch:
+        patch.setattr(type(reader), "_columns_view", lambda *_: pytest.fail("decoded a kept row again"))
+        for index in range(len(dataset)):
+            assert_same_items(stock[index], dataset[index])
+
+    row_bytes = sum(value.nbytes for value in kept[0].values())
+    small = factory.make_dataset(training_config(tiny_dataset_root, config))
+    small.reader.cache_bytes = 3 * row_bytes
+    for index in reversed(range(len(small))):
+        assert_same_items(stock[index], small[index])
+    (kept,) = small.reader.__dict__["_decoded_row_caches"][1].values()
+    assert len(kept) == 3 and small.reader.__dict__["_cached_bytes"] <= 3 * row_bytes
+
+
 @pytest.fixture
 def paraphrased_root(tiny_dataset_root, tmp_path):
     root = tmp_path / "tiny"

@@ -363,6 +363,8 @@ def test_config_rejects_bad_values():
         HiveformerConfig(normalization_mapping={"STATE": "MEAN_STD"}, device="cpu")
     with pytest.raises(ValueError, match="lr_schedule must be one of constant, cosine; got 'linear'"):
         HiveformerConfig(lr_schedule="linear", device="cpu")
+    with pytest.raises(ValueError, match="history_cache_mib must be >= 0, got -1"):
+        HiveformerConfig(history_cache_mib=-1, device="cpu")
 
 
 def test_training_decodes_only_supervised_steps_with_the_same_predictions(tiny_dataset_root):

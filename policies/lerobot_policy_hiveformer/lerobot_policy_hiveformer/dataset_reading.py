@@ -5,7 +5,10 @@
    column fast path: it decodes *every* column of the history rows (every PNG of every camera), once per
    key, so HiveFormer's 11 history keys decode each image 11 times (LeRobot issues #2895 and #2315).
    `HistoryOnceReader` overrides that one method: the history rows are decoded once, with only the
-   columns that have history. Its items equal the stock reader's (same keys, same tensors; tested).
+   columns that have history. Its items equal the stock reader's (same keys, same tensors; tested). In a
+   training it also keeps the rows it decoded (`history_cache_mib`, 1 GiB by default, per loader worker):
+   every window that holds a row reads it again, and a keyframe dataset is small, so after the first
+   epoch a window decodes no PNG (a tower run's loader worker took ~27 % of a core of the 2 it shared).
 2. Samples as the authors train. `TrainingReader.get_item` turns the frame LeRobot's sampler drew into
    its whole episode (the window ending at the episode's last keyframe, when the episode fits in the
    history: every keyframe supervised once per sample, none ~n times as often as the last) and, where
@@ -38,7 +41,13 @@ PARAPHRASES_FILE = "meta/task_paraphrases.json"
 
 
 class HistoryOnceReader(DatasetReader):
-    """LeRobot's reader, with each item's history rows decoded once for all keys with history."""
+    """LeRobot's reader, with each item's history rows decoded once for all keys with history.
+
+    With `cache_bytes` > 0 it also keeps decoded rows (up to that many bytes, the first ones decoded) and
+    decodes only the rows it does not hold.
+    """
+
+    cache_bytes = 0
 
     def _query_hf_dataset(self, query_indices: dict[str, list[int]]) -> dict:
         keys = tuple(key for key in query_indices if key not in self._meta.video_keys)
@@ -50,9 +59,26 @@ class HistoryOnceReader(DatasetReader):
             for key in keys
         }
         rows = sorted({row for indices in relative.values() for row in indices})
-        position = {row: i for i, row in enumerate(rows)}
-        decoded = self._columns_view(keys)[rows]  # {key: [value of each row]}
-        return {key: torch.stack([decoded[key][position[row]] for row in relative[key]]) for key in keys}
+        cache = self._decoded_rows(keys)
+        missing = [row for row in rows if row not in cache]
+        decoded = self._columns_view(keys)[missing] if missing else {}  # {key: [value of each missing row]}
+        fresh = {row: {key: decoded[key][i] for key in keys} for i, row in enumerate(missing)}
+        for row, values in fresh.items():
+            size = sum(value.nbytes for value in values.values())
+            if self.__dict__["_cached_bytes"] + size <= self.cache_bytes:
+                cache[row] = values
+                self.__dict__["_cached_bytes"] += size
+        value = {row: fresh.get(row) or cache[row] for row in rows}
+        return {key: torch.stack([value[row][key] for row in relative[key]]) for key in keys}
+
+    def _decoded_rows(self, keys: tuple[str, ...]) -> dict[int, dict]:
+        """The kept rows of `keys` (row -> {key: value}), emptied when the table is reloaded."""
+        source, caches = self.__dict__.get("_decoded_row_caches", (None, {}))
+        if source is not self.hf_dataset:
+            caches = {}
+            self.__dict__["_decoded_row_caches"] = (self.hf_dataset, caches)
+            self.__dict__["_cached_bytes"] = 0
+        return caches.setdefault(keys, {})
 
     def _columns_view(self, columns: tuple[str, ...]):
         """`hf_dataset` restricted to `columns` (its transform still applies), built once per table."""
@@ -123,6 +149,7 @@ def configure_training(dataset, policy_config) -> bool:
     reader = dataset.reader
     reader.__class__ = TrainingReader
     reader.whole_episodes = bool(policy_config.whole_episodes)
+    reader.cache_bytes = int(policy_config.history_cache_mib) * 2**20
     use_paraphrases = policy_config.sample_paraphrases and policy_config.text_encoder != "one_hot"
     reader.paraphrases = read_paraphrases(dataset.root) if use_paraphrases else {}
     return True
