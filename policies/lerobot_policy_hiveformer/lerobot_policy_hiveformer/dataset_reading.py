@@ -74,22 +74,25 @@ class HistoryOnceReader(DatasetReader):
 
     def _decoded_rows(self, keys: tuple[str, ...]) -> dict[int, dict]:
         """The kept rows of `keys` (row -> {key: value}), emptied when the table is reloaded."""
-        source, caches = self.__dict__.get("_decoded_row_caches", (None, {}))
-        if source is not self.hf_dataset:
-            caches = {}
-            self.__dict__["_decoded_row_caches"] = (self.hf_dataset, caches)
+        caches = self._per_table("_decoded_row_caches")
+        if not caches:
             self.__dict__["_cached_bytes"] = 0
         return caches.setdefault(keys, {})
 
     def _columns_view(self, columns: tuple[str, ...]):
         """`hf_dataset` restricted to `columns` (its transform still applies), built once per table."""
-        source, views = self.__dict__.get("_history_column_views", (None, {}))
-        if source is not self.hf_dataset:  # first read, or the table was reloaded
-            views = {}
-            self.__dict__["_history_column_views"] = (self.hf_dataset, views)
+        views = self._per_table("_history_column_views")
         if columns not in views:
             views[columns] = self.hf_dataset.select_columns(list(columns))
         return views[columns]
+
+    def _per_table(self, name: str) -> dict:
+        """The reader's dict `name`, new for each table (the first read, or after `hf_dataset` was reloaded)."""
+        source, store = self.__dict__.get(name, (None, {}))
+        if source is not self.hf_dataset:
+            store = {}
+            self.__dict__[name] = (self.hf_dataset, store)
+        return store
 
 
 class TrainingReader(HistoryOnceReader):
