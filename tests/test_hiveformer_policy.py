@@ -1,5 +1,6 @@
 """HiveFormer policy plugin on a tiny keyframe dataset written in the converter's format."""
 
+import dataclasses
 import math
 import platform
 import subprocess
@@ -21,6 +22,7 @@ from lerobot_policy_hiveformer.modeling_hiveformer import (
     ChannelsLastGroupNorm,
     ClipInstructionEncoder,
     ConvBlock,
+    Dropout,
     KeyframeObservations,
     MultiHeadAttention,
     PackedSteps,
@@ -33,6 +35,7 @@ from lerobot_policy_hiveformer.modeling_hiveformer import (
     conv_block_of_concatenation,
     supervised_steps,
     tiny_random_clip_text_model,
+    upsample_twice,
 )
 
 __all__ = ["tiny_dataset_root"]  # the fixture is used by name
@@ -58,7 +61,7 @@ def single_step(batch: dict, step: int) -> dict:
 def test_point_cloud_rebuilds_the_table_plane(tiny_dataset_root):
     config, _ = tiny_config(tiny_dataset_root)
     obs = keyframe_observations(history_batch(tiny_dataset_root, config, [0, 7]), config)
-    heights = obs.points[:, :, :, 2][obs.valid_pixels]  # every hit is on the table z = 0
+    heights = obs.points[:, :, 2][obs.valid_pixels]  # every hit is on the table z = 0
     assert obs.valid_pixels.float().mean() > 0.5
     assert heights.abs().max() < 2e-3
 
@@ -67,14 +70,15 @@ def test_gripper_mark_peaks_at_the_projected_gripper(tiny_dataset_root):
     config, _ = tiny_config(tiny_dataset_root)
     obs = keyframe_observations(history_batch(tiny_dataset_root, config, [3]), config)
     calibration = obs.calibration[0, -1, 0]  # left shoulder camera
-    point = obs.points[0, -1, 0, :, 20, 11]  # the table point seen at row 20, column 11
+    points = obs.points.unflatten(0, obs.pixel_steps.shape)  # every step kept: (B, T, C, 3, H, W)
+    point = points[0, -1, 0, :, 20, 11]  # the table point seen at row 20, column 11
     uv, in_front = project_to_pixels(point, calibration)
     assert in_front and torch.allclose(uv, torch.tensor([11.0, 20.0]), atol=0.1)
     mark = gripper_mark(point, calibration, 32, 32)[0]
     assert divmod(int(mark.argmax()), 32) == (20, 11) and mark.sum() == 1  # one pixel, as the authors'
     behind = gripper_mark(2 * calibration[4:].view(4, 4)[:3, 3] - point, calibration, 32, 32)
     assert behind.max() == 0
-    off_image = obs.points[0, -1, 0, :, 20, 11] + torch.tensor([5.0, 0.0, 0.0])  # far to the side
+    off_image = point + torch.tensor([5.0, 0.0, 0.0])  # far to the side
     uv, _ = project_to_pixels(off_image, calibration)
     assert not (0 <= uv[0] < 32 and 0 <= uv[1] < 32)
     assert gripper_mark(off_image, calibration, 32, 32).max() == 0  # nothing marked at the border
@@ -381,6 +385,13 @@ def test_training_decodes_only_supervised_steps_with_the_same_predictions(tiny_d
     assert torch.allclose(decoded.position, window.position[supervised], atol=1e-6)
     assert torch.allclose(decoded.quaternion, window.quaternion[supervised], atol=1e-6)
     assert torch.allclose(decoded.pixel_attention, window.pixel_attention[supervised], atol=1e-6)
+    # Training builds no pixel maps for the padding steps: the same predictions.
+    kept = keyframe_observations(batch, policy.config, keep=supervised)
+    assert kept.rgb.shape[0] == int(kept.step_valid.sum()) == 6 and obs.rgb.shape[0] == 9
+    with torch.no_grad():
+        from_kept = policy.model(kept, instruction, instruction_mask, decode=supervised)
+    assert torch.allclose(from_kept.position, decoded.position, atol=1e-6)
+    assert torch.allclose(from_kept.pixel_attention, decoded.pixel_attention, atol=1e-6)
 
 
 def test_gradients_reach_every_feature_map_channels_last(tiny_dataset_root):
@@ -432,7 +443,7 @@ def test_the_position_offset_starts_at_zero(tiny_dataset_root):
     with torch.no_grad():
         prediction = policy.predict_keyframes(batch)
     obs = keyframe_observations(batch, policy.config)
-    attended = torch.einsum("btchw,btckhw->btk", prediction.pixel_attention, obs.points)
+    attended = torch.einsum("btchw,btckhw->btk", prediction.pixel_attention, obs.points.unflatten(0, (2, -1)))
     assert torch.allclose(prediction.position, attended, atol=1e-6)
 
 
@@ -445,37 +456,73 @@ def test_random_rescale_moves_colour_points_and_mark_together(tiny_dataset_root)
         out = random_rescale(obs, scale, scale)
         assert out.rgb.shape == obs.rgb.shape and out.mark.shape == obs.mark.shape
         # Every output pixel is one input pixel: its colour, point and validity travel together.
-        before = torch.cat([obs.rgb, obs.points, obs.valid_pixels.unsqueeze(3).float()], 3)
-        after = torch.cat([out.rgb, out.points, out.valid_pixels.unsqueeze(3).float()], 3)
-        pairs_before = {tuple(p) for p in before[0, -1, 0].flatten(1).T.tolist()}
-        assert all(tuple(p) in pairs_before for p in after[0, -1, 0].flatten(1).T.tolist())
+        before = torch.cat([obs.rgb, obs.points, obs.valid_pixels.unsqueeze(2).float()], 2)
+        after = torch.cat([out.rgb, out.points, out.valid_pixels.unsqueeze(2).float()], 2)
+        pairs_before = {tuple(p) for p in before[-1, 0].flatten(1).T.tolist()}
+        assert all(tuple(p) in pairs_before for p in after[-1, 0].flatten(1).T.tolist())
         assert torch.equal(out.calibration, obs.calibration)  # calibration is never augmented
 
 
-def test_random_rescale_is_nearest_resize_reflection_pad_and_crop():
-    """The one-gather augmentation equals the authors' steps done one by one with PyTorch, random draws included."""
+@pytest.mark.parametrize("shape", [(6, 32, 32), (2, 3, 7, 5), (1, 1, 1)])
+def test_upsample_twice_is_bilinear_interpolation(shape):
+    x = torch.randn(*shape, requires_grad=True)
+    reference = x.detach().clone().requires_grad_()
+    expected = torch.nn.functional.interpolate(reference.reshape(-1, 1, *shape[-2:]), scale_factor=2,
+                                               mode="bilinear", align_corners=False)
+    got = upsample_twice(x)
+    assert got.shape == (*shape[:-2], 2 * shape[-2], 2 * shape[-1])
+    assert torch.allclose(got, expected.view(got.shape), atol=1e-6)
+    weights = torch.randn(got.shape)
+    (got * weights).sum().backward()
+    (expected.view(got.shape) * weights).sum().backward()
+    assert torch.allclose(x.grad, reference.grad, atol=1e-5)
+
+
+def test_dropout_zeroes_a_fraction_p_and_scales_the_rest():
+    torch.manual_seed(0)
+    dropout = Dropout(0.25)
+    x = torch.full((200_000,), 2.0, requires_grad=True)
+    y = dropout(x)
+    assert y.unique().tolist() == [0.0, pytest.approx(2 / 0.75)]
+    assert abs(float((y == 0).float().mean()) - 0.25) < 0.005
+    y.sum().backward()
+    assert torch.equal(x.grad == 0, y == 0)  # the gradient flows through the kept values only
+    assert torch.equal(dropout.eval()(x), x)
+
+
+@pytest.mark.parametrize("padded", [False, True])
+def test_random_rescale_is_nearest_resize_reflection_pad_and_crop(padded):
+    """The one-gather augmentation equals the authors' steps done one by one with PyTorch, random draws
+    included; with pixel maps for some steps only (training leaves out padding), the kept steps get the same."""
     batch, steps, cameras, height, width = 3, 2, 2, 16, 12
     lead = (batch, steps, cameras)
-    obs = KeyframeObservations(
+    full = KeyframeObservations(
         rgb=torch.rand(*lead, 3, height, width), points=torch.randn(*lead, 3, height, width),
         valid_pixels=torch.rand(*lead, height, width) > 0.3, mark=torch.rand(*lead, 1, height, width),
         calibration=torch.zeros(*lead, 20), gripper=torch.zeros(batch, steps, 8),
-        step_valid=torch.ones(batch, steps, dtype=torch.bool), instructions=["x"] * batch)
+        step_valid=torch.ones(batch, steps, dtype=torch.bool), pixel_steps=torch.ones(batch, steps, dtype=torch.bool),
+        instructions=["x"] * batch)
+    kept = torch.tensor([[False, True], [True, True], [False, True]]) if padded else full.pixel_steps
+    obs = KeyframeObservations(**{
+        **{field.name: getattr(full, field.name) for field in dataclasses.fields(full)},
+        **{name: getattr(full, name)[kept] for name in ("rgb", "points", "valid_pixels", "mark")},
+        "pixel_steps": kept, "step_valid": kept})
     for seed, (low, high) in enumerate([(0.75, 1.25), (0.55, 0.8), (1.3, 2.0), (1.0, 1.0)]):
         torch.manual_seed(seed)
         out = random_rescale(obs, low, high)
+        got = torch.zeros(batch, steps, cameras, 8, height, width)
+        got[kept] = torch.cat([out.rgb, out.points, out.valid_pixels.unsqueeze(2).float(), out.mark], dim=2)
         torch.manual_seed(seed)
         for sample in range(batch):
             scale = float(torch.empty(()).uniform_(low, high))
             size = (max(int(height * scale), 1), max(int(width * scale), 1))
-            maps = torch.cat([obs.rgb, obs.points, obs.valid_pixels.unsqueeze(3).float(), obs.mark], dim=3)[sample]
+            maps = torch.cat([full.rgb, full.points, full.valid_pixels.unsqueeze(3).float(), full.mark], dim=3)[sample]
             x = torch.nn.functional.interpolate(maps.flatten(0, 1), size=size, mode="nearest")
             x = torch.nn.functional.pad(x, (0, max(width - size[1], 0), 0, max(height - size[0], 0)), mode="reflect")
             top = int(torch.randint(0, x.shape[-2] - height + 1, ()))
             left = int(torch.randint(0, x.shape[-1] - width + 1, ()))
             expected = x[..., top : top + height, left : left + width].unflatten(0, (steps, cameras))
-            got = torch.cat([out.rgb, out.points, out.valid_pixels.unsqueeze(3).float(), out.mark], dim=3)[sample]
-            assert torch.equal(got, expected), (seed, sample)
+            assert torch.equal(got[sample][kept[sample]], expected[kept[sample]]), (seed, sample)
 
 
 @pytest.mark.parametrize("shape", [(6, 16, 64, 64), (40, 16, 8, 8), (2, 16, 4, 4)])

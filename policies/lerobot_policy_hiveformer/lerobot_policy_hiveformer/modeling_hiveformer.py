@@ -103,20 +103,34 @@ def quaternion_loss(predicted: Tensor, target: Tensor) -> Tensor:
 
 @dataclass
 class KeyframeObservations:
-    """One window of keyframes in the model's units. Shapes: B batch, T steps, C cameras."""
+    """One window of keyframes in the model's units. Shapes: B batch, T steps, C cameras.
 
-    rgb: Tensor  # (B, T, C, 3, H, W) in [0, 1]
-    points: Tensor  # (B, T, C, 3, H, W) world metres, 0 where no depth
-    valid_pixels: Tensor  # (B, T, C, H, W) bool: the depth had a hit
-    mark: Tensor  # (B, T, C, 1, H, W): 1 at the current gripper position's pixel
+    The pixel maps are kept for the steps where `pixel_steps` is True only, packed in (sample, step) order:
+    M = pixel_steps.sum() rows. A training window leaves out its padding steps, which nothing reads.
+    """
+
+    rgb: Tensor  # (M, C, 3, H, W) in [0, 1]
+    points: Tensor  # (M, C, 3, H, W) world metres, 0 where no depth
+    valid_pixels: Tensor  # (M, C, H, W) bool: the depth had a hit
+    mark: Tensor  # (M, C, 1, H, W): 1 at the current gripper position's pixel
     calibration: Tensor  # (B, T, C, 20)
     gripper: Tensor  # (B, T, 8) = [x, y, z, qx, qy, qz, qw, open]
     step_valid: Tensor  # (B, T) bool: False for padding before the episode start
+    pixel_steps: Tensor  # (B, T) bool: the steps whose pixel maps are kept
     instructions: list[str]  # B
 
+    def pixels(self, x: Tensor, steps: Tensor) -> Tensor:
+        """The rows of `x` (one of the pixel maps) at the steps where `steps` (B, T) is True, a subset of
+        `pixel_steps`; `x` itself, without a copy, when they are the same steps."""
+        return x if torch.equal(steps, self.pixel_steps) else x[steps[self.pixel_steps]]
 
-def keyframe_observations(batch: dict, config: HiveformerConfig) -> KeyframeObservations:
-    """Gather the policy's inputs from a LeRobot batch, with history (B, T, ...) or without (B, ...)."""
+
+def keyframe_observations(batch: dict, config: HiveformerConfig, keep: Tensor | None = None) -> KeyframeObservations:
+    """Gather the policy's inputs from a LeRobot batch, with history (B, T, ...) or without (B, ...).
+
+    The pixel maps (colour, point cloud, gripper mark) are built for the real steps and those where `keep`
+    (B, T) is True, or for every step without `keep`.
+    """
     cameras = config.camera_names
     first_image = batch[IMAGES_PREFIX + cameras[0]]
     has_time = first_image.dim() == 5
@@ -124,22 +138,28 @@ def keyframe_observations(batch: dict, config: HiveformerConfig) -> KeyframeObse
     def with_time(x: Tensor) -> Tensor:
         return x if has_time else x.unsqueeze(1)
 
-    rgb = torch.stack([with_time(batch[IMAGES_PREFIX + cam]) for cam in cameras], dim=2)
-    # LeRobot's native depth: (.., 1, H, W) millimetres, 0 = no hit.
-    depth_mm = torch.stack([with_time(batch[DEPTH_PREFIX + cam]) for cam in cameras], dim=2)[..., 0, :, :].float()
-    calibration = torch.stack([with_time(batch[CALIBRATION_PREFIX + cam]) for cam in cameras], dim=2).float()
-    valid_pixels = depth_mm > 0
-    points = depth_to_world_points(depth_mm / 1000.0, calibration) * valid_pixels.unsqueeze(-3)
-    gripper = with_time(batch[OBS_STATE])[..., :GRIPPER_STATE_DIM].float()
-    height, width = rgb.shape[-2:]
-    mark = gripper_mark(gripper[:, :, None, :3].expand_as(calibration[..., :3]), calibration, height, width)
-
-    batch_size, steps = rgb.shape[:2]
+    batch_size, steps = with_time(first_image).shape[:2]
     pad_key = OBS_STATE + "_is_pad"
     if has_time and pad_key in batch:
         step_valid = ~batch[pad_key].bool()
     else:
-        step_valid = torch.ones(batch_size, steps, dtype=torch.bool, device=rgb.device)
+        step_valid = torch.ones(batch_size, steps, dtype=torch.bool, device=first_image.device)
+    pixel_steps = torch.ones_like(step_valid) if keep is None else step_valid | keep
+
+    def per_camera(prefix: str) -> Tensor:  # (M, C, ...)
+        return torch.stack([take_steps(with_time(batch[prefix + cam]), pixel_steps) for cam in cameras], dim=1)
+
+    calibration = torch.stack([with_time(batch[CALIBRATION_PREFIX + cam]) for cam in cameras], dim=2).float()
+    pixel_calibration = take_steps(calibration, pixel_steps)  # (M, C, 20)
+    rgb = per_camera(IMAGES_PREFIX)
+    # LeRobot's native depth: (.., 1, H, W) millimetres, 0 = no hit.
+    depth_mm = per_camera(DEPTH_PREFIX)[..., 0, :, :].float()
+    valid_pixels = depth_mm > 0
+    points = depth_to_world_points(depth_mm / 1000.0, pixel_calibration) * valid_pixels.unsqueeze(-3)
+    gripper = with_time(batch[OBS_STATE])[..., :GRIPPER_STATE_DIM].float()
+    height, width = rgb.shape[-2:]
+    gripper_xyz = take_steps(gripper, pixel_steps)[:, None, :3].expand_as(pixel_calibration[..., :3])
+    mark = gripper_mark(gripper_xyz, pixel_calibration, height, width)
 
     instructions = batch.get("task")
     if instructions is None:
@@ -154,6 +174,7 @@ def keyframe_observations(batch: dict, config: HiveformerConfig) -> KeyframeObse
         calibration=calibration,
         gripper=gripper,
         step_valid=step_valid,
+        pixel_steps=pixel_steps,
         instructions=list(instructions),
     )
 
@@ -167,7 +188,8 @@ def random_rescale(obs: KeyframeObservations, min_scale: float, max_scale: float
     sample's source pixel for each output pixel (`rescale_source_pixels`): the same values as
     `F.interpolate(mode="nearest")`, `F.pad(mode="reflect")` and a crop, in one pass instead of four.
     """
-    batch, _, _, _, height, width = obs.rgb.shape
+    batch = obs.pixel_steps.shape[0]
+    height, width = obs.rgb.shape[-2:]
     sources = []
     for _ in range(batch):
         scale = float(torch.empty(()).uniform_(min_scale, max_scale))
@@ -177,20 +199,22 @@ def random_rescale(obs: KeyframeObservations, min_scale: float, max_scale: float
         rows = rescale_source_pixels(height, size[0], top)
         cols = rescale_source_pixels(width, size[1], left)
         sources.append(rows[:, None] * width + cols[None, :])
-    index = torch.stack(sources).view(batch, 1, 1, 1, height * width).to(obs.rgb.device)
+    sample_of_row = obs.pixel_steps.nonzero()[:, 0]  # (M,): the pixel maps' rows are packed (sample, step)
+    index = torch.stack(sources)[sample_of_row].view(-1, 1, 1, height * width).to(obs.rgb.device)
 
-    def gather(x: Tensor) -> Tensor:  # (B, T, C, k, H, W); gather with an expanded index beats take_along_dim
+    def gather(x: Tensor) -> Tensor:  # (M, C, k, H, W); gather with an expanded index beats take_along_dim
         flat = x.flatten(-2)
         return torch.gather(flat, -1, index.expand(flat.shape)).unflatten(-1, (height, width))
 
     return KeyframeObservations(
         rgb=gather(obs.rgb),
         points=gather(obs.points),
-        valid_pixels=gather(obs.valid_pixels.unsqueeze(3)).squeeze(3),
+        valid_pixels=gather(obs.valid_pixels.unsqueeze(2)).squeeze(2),
         mark=gather(obs.mark),
         calibration=obs.calibration,
         gripper=obs.gripper,
         step_valid=obs.step_valid,
+        pixel_steps=obs.pixel_steps,
         instructions=obs.instructions,
     )
 
@@ -523,7 +547,31 @@ class UNetDecoder(nn.Module):
             x = F.interpolate(x, size=skip.shape[-2:], mode="bilinear", align_corners=False)
             x = conv_block_of_concatenation(block, [x, skip])  # (N, 16, h, w) at H/8, H/4, H/2
         logit = self.to_logit(x)  # (N, 1, H/2, W/2)
-        return F.interpolate(logit, scale_factor=2, mode="bilinear", align_corners=False).squeeze(1)
+        return upsample_twice(logit.squeeze(1))
+
+
+def upsample_twice(x: Tensor) -> Tensor:
+    """`F.interpolate(x, scale_factor=2, mode="bilinear", align_corners=False)` of (..., H, W) maps, as two
+    1-D passes: each output pixel is 3/4 of its input pixel and 1/4 of the neighbour on its side (the edge
+    pixel repeated). On CPU, forward and backward take ~2/3 of PyTorch's kernel's time at the logit maps."""
+    for dim in (-1, -2):
+        length = x.shape[dim]
+        before = torch.cat([x.narrow(dim, 0, 1), x.narrow(dim, 0, length - 1)], dim)
+        after = torch.cat([x.narrow(dim, 1, length - 1), x.narrow(dim, length - 1, 1)], dim)
+        # (..., L, 2) or (..., L, 2, W') -> (..., 2L) or (..., 2L, W'): each pixel followed by its right/lower half
+        x = torch.stack([torch.lerp(x, before, 0.25), torch.lerp(x, after, 0.25)], dim=dim).flatten(dim - 1, dim)
+    return x
+
+
+class Dropout(nn.Dropout):
+    """`nn.Dropout` (same rule, same scaling) whose mask comes from uniform draws: PyTorch's CPU dropout
+    draws it with `bernoulli_`, about twice as slow (README, Compute). On other devices, PyTorch's."""
+
+    def forward(self, x: Tensor) -> Tensor:
+        if not self.training or self.p == 0 or x.device.type != "cpu":
+            return super().forward(x)
+        keep = torch.empty_like(x).uniform_().ge_(self.p).mul_(1 / (1 - self.p))  # 0 or 1 / (1 - p)
+        return x * keep
 
 
 class MultiHeadAttention(nn.Module):
@@ -670,11 +718,11 @@ class BlockCausalLayer(nn.Module):
         self.feedforward = nn.Sequential(
             nn.Linear(dim, config.feedforward_dim),
             nn.GELU(),
-            nn.Dropout(config.dropout),
+            Dropout(config.dropout),
             nn.Linear(config.feedforward_dim, dim),
         )
         self.norms = nn.ModuleList([nn.LayerNorm(dim) for _ in range(3)])
-        self.dropout = nn.Dropout(config.dropout)
+        self.dropout = Dropout(config.dropout)
 
     def forward(
         self,
@@ -809,18 +857,19 @@ class HiveformerModel(nn.Module):
         Only the steps where `encode` (B, T) is True go through the encoder; the others (history padding,
         which no step attends to) keep zero patch features.
         """
-        batch, steps, cameras = obs.rgb.shape[:3]
-        mark = take_steps(obs.mark, encode)  # (M, C, 1, H, W)
-        points = take_steps(obs.points, encode)  # (M, C, 3, H, W), already 0 where there is no depth
+        batch, steps = encode.shape
+        cameras = obs.rgb.shape[1]
+        mark = obs.pixels(obs.mark, encode)  # (M, C, 1, H, W)
+        points = obs.pixels(obs.points, encode)  # (M, C, 3, H, W), already 0 where there is no depth
         # Built channels-last, (M, C, H, W, 4 or 7), viewed as (M*C, 4 or 7, H, W): oneDNN's convolutions with
         # few channels run much faster on that layout than on NCHW (which they reorder on every call),
         # and every encoder and decoder feature map inherits it.
-        channels = [take_steps(obs.rgb, encode) * 2 - 1, *([points] if self.config.stem_point_cloud else []), mark]
+        channels = [obs.pixels(obs.rgb, encode) * 2 - 1, *([points] if self.config.stem_point_cloud else []), mark]
         images = torch.cat([x.movedim(-3, -1) for x in channels], dim=-1).flatten(0, 1).permute(0, 3, 1, 2)
         skips = self.encoder(images)
         bottleneck = skips[-1]  # (M*C, 16, h, w)
 
-        valid = take_steps(obs.valid_pixels, encode).flatten(0, 1).unsqueeze(1).to(points.dtype)
+        valid = obs.pixels(obs.valid_pixels, encode).flatten(0, 1).unsqueeze(1).to(points.dtype)
         point_sum = F.avg_pool2d(points.flatten(0, 1), ENCODER_STRIDE)
         valid_fraction = F.avg_pool2d(valid, ENCODER_STRIDE)
         # (M*C, 3, h, w): mean xyz of the patch's valid points
@@ -903,11 +952,11 @@ class HiveformerModel(nn.Module):
         logits = self.decoder(camera_grids, skips)  # (M*C, H, W)
         height, width = logits.shape[-2:]
         logits = logits.view(-1, cameras * height * width) / self.config.attention_temperature
-        valid = take_steps(obs.valid_pixels, decode).view(logits.shape)  # (M, C*H*W)
+        valid = obs.pixels(obs.valid_pixels, decode).view(logits.shape)  # (M, C*H*W)
         # Pixels without depth have no 3D point to point at.
         logits = logits.masked_fill(~valid, torch.finfo(logits.dtype).min)
         attention = logits.softmax(-1).view(-1, cameras, height, width)  # (M, C, H, W)
-        attended_point = torch.einsum("mchw,mckhw->mk", attention, take_steps(obs.points, decode))  # (M, 3)
+        attended_point = torch.einsum("mchw,mckhw->mk", attention, obs.pixels(obs.points, decode))  # (M, 3)
 
         pooled = self.rotation_gripper_cnn(camera_grids).amax(dim=(-2, -1))  # (M*C, D)
         pooled = pooled.view(-1, cameras, dim).amax(dim=1)  # (M, D)
@@ -948,14 +997,17 @@ class HiveformerModel(nn.Module):
 
 
 def _last_step(obs: KeyframeObservations) -> KeyframeObservations:
+    last = torch.zeros_like(obs.pixel_steps)
+    last[:, -1] = True
     return KeyframeObservations(
-        rgb=obs.rgb[:, -1:],
-        points=obs.points[:, -1:],
-        valid_pixels=obs.valid_pixels[:, -1:],
-        mark=obs.mark[:, -1:],
+        rgb=obs.pixels(obs.rgb, last),
+        points=obs.pixels(obs.points, last),
+        valid_pixels=obs.pixels(obs.valid_pixels, last),
+        mark=obs.pixels(obs.mark, last),
         calibration=obs.calibration[:, -1:],
         gripper=obs.gripper[:, -1:],
         step_valid=obs.step_valid[:, -1:],
+        pixel_steps=obs.pixel_steps[:, -1:],
         instructions=obs.instructions,
     )
 
@@ -1025,7 +1077,7 @@ class HiveformerPolicy(PreTrainedPolicy):
         """Teacher-forced losses over every non-padded step of the history window."""
         supervised = supervised_steps(batch)  # (B, T)
         target = window_targets(batch)  # (B, T, 8)
-        obs = keyframe_observations(batch, self.config)
+        obs = keyframe_observations(batch, self.config, keep=supervised)  # no pixel maps for padding steps
         config = self.config
         if self.training and (config.augmentation_min_scale, config.augmentation_max_scale) != (1.0, 1.0):
             obs = random_rescale(obs, config.augmentation_min_scale, config.augmentation_max_scale)
