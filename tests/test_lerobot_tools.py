@@ -11,13 +11,16 @@
   one evaluates on the task's own variations (``--task``).
 """
 
+import contextlib
 import json
 import os
+import signal
 import subprocess
 import sys
 from pathlib import Path
 
 import numpy as np
+import psutil
 import pytest
 import torch
 from lerobot.datasets.lerobot_dataset import LeRobotDataset
@@ -29,8 +32,45 @@ RENUMBERED = ("index", "episode_index", "task_index")  # what split and merge nu
 
 
 def run(command: list, env: dict | None = None, timeout: int = 600) -> subprocess.CompletedProcess:
-    return subprocess.run([str(c) for c in command], capture_output=True, text=True, env=env or OFFLINE,
-                          timeout=timeout)
+    """The command's result; past `timeout` s, the Python stacks of every process it started, then a failure.
+
+    faulthandler is on in the command and its children: SIGABRT makes each print where every thread of it
+    stands, so a hang (a stuck rendezvous, say) names its place. torchrun starts its ranks in sessions of their
+    own, so they are found as the command's descendants, not by process group."""
+    process = subprocess.Popen([str(c) for c in command], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                               text=True, env={**(env or OFFLINE), "PYTHONFAULTHANDLER": "1"})
+    try:
+        stdout, stderr = process.communicate(timeout=timeout)
+    except subprocess.TimeoutExpired:
+        launcher = psutil.Process(process.pid)
+        processes = [*launcher.children(recursive=True), launcher]
+        for each in processes:
+            with contextlib.suppress(psutil.NoSuchProcess):
+                each.send_signal(signal.SIGABRT)
+        try:
+            stdout, stderr = process.communicate(timeout=60)
+        finally:
+            for each in processes:
+                with contextlib.suppress(psutil.NoSuchProcess):
+                    each.kill()
+        pytest.fail(f"still running after {timeout} s: {' '.join(map(str, command))}\n{stdout[-2000:]}\n"
+                    f"{stderr[-40000:]}")
+    return subprocess.CompletedProcess(process.args, process.returncode, stdout, stderr)
+
+
+def test_a_command_past_its_timeout_fails_with_the_stacks_of_its_processes():
+    """`run`'s timeout report reaches a child in a session of its own, as torchrun starts its ranks, and kills it."""
+    child = "import time; time.sleep(600)"
+    parent = ("import subprocess, sys, time; "
+              f"print(subprocess.Popen([sys.executable, '-c', {child!r}], start_new_session=True).pid, flush=True); "
+              "time.sleep(600)")
+    with pytest.raises(pytest.fail.Exception) as failure:
+        run([sys.executable, "-c", parent], timeout=5)
+    report = str(failure.value)
+    assert report.startswith("still running after 5 s: ")
+    assert report.count("Fatal Python error: Aborted") == 2 and report.count('File "<string>", line 1') == 2
+    child_pid = int(report.splitlines()[1])
+    assert not psutil.pid_exists(child_pid) or psutil.Process(child_pid).status() == psutil.STATUS_ZOMBIE
 
 
 def train_arguments(root: Path, repo_id: str, output_dir: Path, text_encoder: str) -> list:
@@ -65,7 +105,7 @@ def test_accelerate_cpu_flag_alone_starts_a_single_process(tmp_path):
 
 
 @pytest.mark.slow
-@pytest.mark.timeout(1800)  # 45 s on an idle fast machine; over 600 s beside the suite's other chains on a slow one
+@pytest.mark.timeout(1000)  # 45 s on an idle fast machine, 80 s beside two busy processes
 def test_accelerate_launch_trains_hiveformer_in_two_processes(converted_push_buttons, tmp_path):
     """`accelerate launch --multi_gpu --num_processes 2 lerobot-train ... --policy.device=cpu`: Accelerate's
     torchrun launcher starts two ranks; lerobot-train's Accelerator(cpu=True) joins them with gloo (DDP)."""
@@ -79,8 +119,11 @@ def test_accelerate_launch_trains_hiveformer_in_two_processes(converted_push_but
         BIN / "lerobot-train",
         *train_arguments(converted_push_buttons / "train", "me/push_buttons_train", output_dir, "one_hot"),
     ]
-    # An HF_HOME of its own: no accelerate default_config.yaml of the machine's takes part.
-    result = run(command, env={**OFFLINE, "HF_HOME": str(tmp_path / "hf_home")}, timeout=1700)
+    # An HF_HOME of its own: no accelerate default_config.yaml of the machine's takes part. Gloo on the
+    # loopback interface: by default it takes the address the host name resolves to, which a sandbox may
+    # leave unreachable, and then its ranks wait for each other until gloo's 30-minute timeout.
+    env = {**OFFLINE, "HF_HOME": str(tmp_path / "hf_home"), "GLOO_SOCKET_IFNAME": "lo"}
+    result = run(command, env=env, timeout=900)
     log = result.stdout + result.stderr
     assert result.returncode == 0, log[-4000:]
     assert "Effective batch size: 2 x 2 = 4" in log and "step:2 " in log
