@@ -56,7 +56,7 @@ bench: install
 reference: install
 	$(BIN)/python -m demo_factory.tools.reference_run --out outputs/reference
 
-# The same chain for tower (1, 2 and 3 cubes; history 25 = the longest episode), with a learning curve
+# The same chain for tower (1, 2 and 3 cubes; history 19 = the longest episode), with a learning curve
 # (success on the seen variations at 3 checkpoints). Results in outputs/reference_tower/.
 reference-tower: install
 	$(BIN)/python -m demo_factory.tools.reference_run --task tower --curve 3 --out outputs/reference_tower

@@ -40,3 +40,26 @@ def test_push_buttons_expert_presses_9_mm_so_a_press_up_to_5_mm_high_still_count
         env.close()
     assert PRESS_DEPTH - 0.0005 <= travel[0.0] <= PRESS_DEPTH, travel
     assert travel[0.005] >= PRESS_DEPTH - 0.0055, travel
+
+
+def test_tower_expert_grips_at_the_end_of_each_move_down_not_in_a_keyframe_of_its_own():
+    """Per cube: above it (open), down to it and close, up; above the target, down and open, up. Executed as
+    keyframes, the close holds the cube in the fingers at the move's end, and the open leaves it in place."""
+    from demo_factory.tasks.objects import held
+    from demo_factory.tasks.tower import KEYFRAMES_PER_CUBE
+
+    env = KeyframeEnv("tower", default_episodes("tower", "train", 1), image_size=(32, 32))
+    try:
+        env.reset()
+        task, keyframes = env.sim_task, env.expert_keyframes
+        words = task.instructed.words
+        assert KEYFRAMES_PER_CUBE == 6 and len(keyframes) == 6 * len(words)
+        assert [k.motion for k in keyframes[:6]] == ["planned", "cartesian", "cartesian"] * 2
+        assert [k.gripper_open for k in keyframes[:6]] == [1.0, 0.0, 0.0, 0.0, 1.0, 1.0]
+        cube = task.cubes[words[0]]
+        for index, keyframe in enumerate(keyframes[:6]):
+            env.step(np.r_[keyframe.pose, keyframe.gripper_open])
+            assert held(env.world, cube) == (index in (1, 2, 3)), index  # closed on it at the move down's end
+        assert task.in_place(env.world, words[0], 0)
+    finally:
+        env.close()

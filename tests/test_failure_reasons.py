@@ -14,6 +14,7 @@ from demo_factory.evaluate.env import DenseEnv, KeyframeEnv, default_episodes
 from demo_factory.evaluate.policies import CurrentPosePolicy
 from demo_factory.evaluate.runner import evaluate_episode, summarise, write_results
 from demo_factory.tasks.base import KeyframeTarget
+from demo_factory.tasks.tower import KEYFRAMES_PER_CUBE
 
 
 class Scripted:
@@ -80,10 +81,13 @@ def test_pressing_nothing_is_the_step_limit():
 
 
 # -- tower ------------------------------------------------------------------------------------------
+GRASP = KEYFRAMES_PER_CUBE // 2  # the expert's keyframes that grasp and lift a cube
+
+
 def test_closing_the_gripper_above_the_cube_is_grasp_missed():
     def too_high(env):
-        over, at, close, lift = env.expert_keyframes[:4]
-        return [over, raised(at, 0.04), raised(close, 0.04), lift]
+        over, close, lift = env.expert_keyframes[:GRASP]  # down to the cube and close at the end of the move
+        return [over, raised(close, 0.04), lift]
 
     record = run("tower", Scripted(too_high))
     assert (record["failure_reason"], record["failure_subgoal"]) == ("grasp missed", 1), record["failure_detail"]
@@ -102,8 +106,8 @@ def test_closing_the_gripper_in_the_air_near_no_cube_is_grasp_missed_not_the_ste
 
 def test_letting_go_of_a_lifted_cube_high_above_the_table_is_cube_dropped():
     def drop(env):
-        grasp = env.expert_keyframes[:4]
-        return grasp + [KeyframeTarget(grasp[3].pose, 1.0, "gripper")]
+        grasp = env.expert_keyframes[:GRASP]
+        return grasp + [KeyframeTarget(grasp[-1].pose, 1.0, "gripper")]
 
     record = run("tower", Scripted(drop))
     assert (record["failure_reason"], record["failure_subgoal"]) == ("cube dropped", 1), record["failure_detail"]
@@ -111,9 +115,9 @@ def test_letting_go_of_a_lifted_cube_high_above_the_table_is_cube_dropped():
 
 def test_letting_go_of_a_cube_3_cm_beside_the_target_is_cube_placed_off_target():
     def beside(env):
-        keyframes = env.expert_keyframes[:8]
-        return keyframes[:4] + [KeyframeTarget((k.pose[0] + 0.03, *k.pose[1:]), k.gripper_open, k.motion)
-                                for k in keyframes[4:]]
+        keyframes = env.expert_keyframes[:KEYFRAMES_PER_CUBE]
+        return keyframes[:GRASP] + [KeyframeTarget((k.pose[0] + 0.03, *k.pose[1:]), k.gripper_open, k.motion)
+                                    for k in keyframes[GRASP:]]
 
     record = run("tower", Scripted(beside))
     assert (record["failure_reason"], record["failure_subgoal"]) == ("cube placed off target", 1), record["failure_detail"]
@@ -121,20 +125,20 @@ def test_letting_go_of_a_cube_3_cm_beside_the_target_is_cube_placed_off_target()
 
 
 def test_a_distractor_on_the_target_is_wrong_cube_placed():
-    record = run("tower", Scripted(lambda env: env.sim_task.wrong_keyframes(env.world)[:8]))
+    record = run("tower", Scripted(lambda env: env.sim_task.wrong_keyframes(env.world)[:KEYFRAMES_PER_CUBE]))
     assert (record["failure_reason"], record["failure_subgoal"]) == ("wrong cube placed", 1), record["failure_detail"]
     assert "(not in the instruction) stands on the target where" in record["failure_detail"]
 
 
 def test_a_lifted_cube_never_let_go_is_cube_still_held():
     """The expert's grasp and lift, then the policy holds still until the step limit."""
-    record = run("tower", Scripted(lambda env: env.expert_keyframes[:4]))
+    record = run("tower", Scripted(lambda env: env.expert_keyframes[:GRASP]))
     assert (record["failure_reason"], record["failure_subgoal"]) == ("cube still held", 1), record["failure_detail"]
     assert "never let go" in record["failure_detail"]
 
 
 def test_lifting_a_distractor_instead_of_the_first_cube_is_wrong_cube_picked():
-    record = run("tower", Scripted(lambda env: env.sim_task.wrong_keyframes(env.world)[:4]))
+    record = run("tower", Scripted(lambda env: env.sim_task.wrong_keyframes(env.world)[:GRASP]))
     assert (record["failure_reason"], record["failure_subgoal"]) == ("wrong cube picked", 1), record["failure_detail"]
     assert "(not in the instruction) cube where" in record["failure_detail"]
 
@@ -148,7 +152,8 @@ def test_a_placed_cube_that_leaves_the_target_is_tower_knocked_over():
         p.resetBasePositionAndOrientation(cube, (*(task.target + [0.08, 0.0]), 0.0225), (0, 0, 0, 1),
                                           physicsClientId=env.world.client)
 
-    record = run("tower", Scripted(lambda env: env.expert_keyframes[:8], before_step={8: knock}))
+    record = run("tower", Scripted(lambda env: env.expert_keyframes[:KEYFRAMES_PER_CUBE],
+                                   before_step={KEYFRAMES_PER_CUBE: knock}))
     assert (record["failure_reason"], record["failure_subgoal"]) == ("tower knocked over", 1), record["failure_detail"]
 
 
@@ -168,7 +173,7 @@ def test_the_reasons_add_up_to_the_failures_overall_per_variation_and_in_results
     env = KeyframeEnv("tower", episodes, image_size=(32, 32))
     policies = [
         Scripted(lambda env: env.expert_keyframes),  # succeeds
-        Scripted(lambda env: env.sim_task.wrong_keyframes(env.world)[:8]),
+        Scripted(lambda env: env.sim_task.wrong_keyframes(env.world)[:KEYFRAMES_PER_CUBE]),
         CurrentPosePolicy(),
     ]
     try:

@@ -19,9 +19,9 @@ def test_tower_reference_run_takes_its_history_from_the_longest_episode_and_plot
                  "--text-encoder", "one_hot"]
     assert main(arguments) == 0
     summary = json.loads((out / "reference_run.json").read_text())
-    assert summary["configuration"]["n_history"] == 17  # the two-cube episode: 8 keyframes a cube + the start
+    assert summary["configuration"]["n_history"] == 13  # the two-cube episode: 6 keyframes a cube + the start
     config = json.loads((out / "train" / "checkpoints" / "last" / "pretrained_model" / "config.json").read_text())
-    assert config["n_history"] == 17
+    assert config["n_history"] == 13
     assert [c["step"] for c in summary["learning_curve"]] == [1, 2]
     assert all(0.0 <= c["success_rate"] <= 1.0 and c["per_variation"] for c in summary["learning_curve"])
     assert (out / "validation" / "000001" / "results.json").exists()

@@ -175,7 +175,7 @@ class KeyframeEnv(_TaskEnv):
         super().__init__(task, episodes, image_size, split, base_seed)
         self.step_slack = step_slack
         self.planner = JointPlanner()
-        self._max_episode_steps = 3 * 8 + step_slack  # the longest expert (tower x3) plus slack
+        self._max_episode_steps = 3 * 8 + step_slack  # the longest expert (stack_blocks: 3 blocks x 8) plus slack
 
     # -- gym API --------------------------------------------------------------------------
     def reset(self, *, seed=None, options=None):

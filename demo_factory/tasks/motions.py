@@ -35,20 +35,28 @@ def reach(position, orientation, gripper_open: float = OPEN) -> list[KeyframeTar
     return [KeyframeTarget(pose(position, orientation), gripper_open, "planned")]
 
 
-def grasp(position, orientation, above: float = ABOVE) -> list[KeyframeTarget]:
+def grasp(position, orientation, above: float = ABOVE, switch_keyframe: bool = True) -> list[KeyframeTarget]:
     """Approach from above, close the fingers on the object, and lift it back to the approach height."""
-    return _down_switch_up(position, orientation, above, OPEN, CLOSED)
+    return _down_switch_up(position, orientation, above, OPEN, CLOSED, switch_keyframe)
 
 
-def place(position, orientation, above: float = ABOVE) -> list[KeyframeTarget]:
+def place(position, orientation, above: float = ABOVE, switch_keyframe: bool = True) -> list[KeyframeTarget]:
     """Carry the held object above ``position``, lower it there, let go and back off upwards."""
-    return _down_switch_up(position, orientation, above, CLOSED, OPEN)
+    return _down_switch_up(position, orientation, above, CLOSED, OPEN, switch_keyframe)
 
 
-def _down_switch_up(position, orientation, above: float, before: float, after: float) -> list[KeyframeTarget]:
-    """Above ``position`` (planned), straight down, the gripper from ``before`` to ``after``, straight up."""
+def _down_switch_up(position, orientation, above: float, before: float, after: float,
+                    switch_keyframe: bool = True) -> list[KeyframeTarget]:
+    """Above ``position`` (planned), straight down, the gripper from ``before`` to ``after``, straight up.
+
+    With ``switch_keyframe`` the gripper's switch is a keyframe of its own, at the pose the move down reached
+    (4 keyframes); without it the move down ends with the switch (3): the executor reaches a keyframe's pose,
+    then applies its gripper command, so the motion is the same, with one keyframe fewer to predict."""
     over = pose(raised(position, above), orientation)
     at = pose(position, orientation)
+    if not switch_keyframe:
+        return [KeyframeTarget(over, before, "planned"), KeyframeTarget(at, after, "cartesian"),
+                KeyframeTarget(over, after, "cartesian")]
     return [
         KeyframeTarget(over, before, "planned"),
         KeyframeTarget(at, before, "cartesian"),

@@ -28,6 +28,12 @@ TRACK_EVERY = 4  # physics steps between the checks of which cubes are held or i
 # the demonstrations' mean place (README, tower).
 TARGET_RGBA = (0.25, 0.25, 0.25, 1.0)
 NEAR_TARGET = CUBE  # xy distance from the target spot of a cube that missed it narrowly (or stands there wrongly)
+# Each cube: above it, down to it and close, up; above its level on the target, down and open, up. The gripper
+# switches at the end of the move down, not as a keyframe of its own: a policy predicts every keyframe's pose
+# afresh, and session 19's tower policy, asked for the expert's switch in place, moved 1-4 cm first (closed on a
+# cube's upper edge or beside its centre, opened after pushing the carried cube into the tower; README, tower).
+SWITCH_KEYFRAME = False
+KEYFRAMES_PER_CUBE = 8 if SWITCH_KEYFRAME else 6  # grasp and place, 4 or 3 each
 
 
 class Tower(Task):
@@ -94,8 +100,8 @@ class Tower(Task):
         for level, colour in enumerate(self.instructed.words):
             position, _ = world.body_pose(self.cubes[colour])
             place_z = (level + 0.5) * CUBE + PLACE_CLEARANCE
-            keyframes += motions.grasp(position, motions.top_down(self.grasp_yaw(colour)), ABOVE)
-            keyframes += motions.place([*self.target, place_z], motions.top_down(0.0), ABOVE)
+            keyframes += motions.grasp(position, motions.top_down(self.grasp_yaw(colour)), ABOVE, SWITCH_KEYFRAME)
+            keyframes += motions.place([*self.target, place_z], motions.top_down(0.0), ABOVE, SWITCH_KEYFRAME)
         return keyframes
 
     def wrong_keyframes(self, world) -> list[KeyframeTarget]:

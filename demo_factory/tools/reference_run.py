@@ -9,7 +9,7 @@ The whole chain with the real components and the commands a user runs: `demo-fac
 (push_buttons or tower demonstrations of a few train variations, one of each length, plus test-variation
 episodes for the unseen splits) → `demo-factory convert` → `lerobot-train` → `demo-factory eval` on new
 scene seeds, per split. HiveFormer's history holds the longest training episode (push_buttons 10
-keyframes, tower 25). With `--curve N` the training also saves N - 1 intermediate checkpoints and each of
+keyframes, tower 19). With `--curve N` the training also saves N - 1 intermediate checkpoints and each of
 the N is evaluated on validation scenes of the seen variations (scene seeds of their own, not the test
 ones): a learning curve that tells how far a longer run would go, and the checkpoint that does best there
 is the one evaluated on the test scenes, as the authors keep the checkpoint that does best on validation.
@@ -51,7 +51,7 @@ BIN = Path(sys.executable).parent
 # Seen variations, one of each length: 205 (maroon) is past the paper's 0-199 (its train ids have no
 # one-button variation); 24 (navy, cyan) and 2 (blue, olive, orange) are paper train variations.
 DEFAULT_VARIATIONS = ("205", "24", "2")
-# tower: paper train variations 46 (green), 0 (black, yellow), 1 (white, gray, red): 9, 17, 25 keyframes.
+# tower: paper train variations 46 (green), 0 (black, yellow), 1 (white, gray, red): 7, 13, 19 keyframes.
 TASK_VARIATIONS = {"push_buttons": DEFAULT_VARIATIONS, "tower": ("46", "0", "1")}
 # The CPU configuration: camera size, batch, steps, instruction encoder.
 REFERENCE_IMAGE_SIZE = 64
