@@ -54,15 +54,9 @@ def _down_switch_up(position, orientation, above: float, before: float, after: f
     then applies its gripper command, so the motion is the same, with one keyframe fewer to predict."""
     over = pose(raised(position, above), orientation)
     at = pose(position, orientation)
-    if not switch_keyframe:
-        return [KeyframeTarget(over, before, "planned"), KeyframeTarget(at, after, "cartesian"),
-                KeyframeTarget(over, after, "cartesian")]
-    return [
-        KeyframeTarget(over, before, "planned"),
-        KeyframeTarget(at, before, "cartesian"),
-        KeyframeTarget(at, after, "gripper"),
-        KeyframeTarget(over, after, "cartesian"),
-    ]
+    down = KeyframeTarget(at, before if switch_keyframe else after, "cartesian")
+    switch = [KeyframeTarget(at, after, "gripper")] if switch_keyframe else []
+    return [KeyframeTarget(over, before, "planned"), down, *switch, KeyframeTarget(over, after, "cartesian")]
 
 
 def lift(position, orientation, gripper_open: float = CLOSED) -> list[KeyframeTarget]:
