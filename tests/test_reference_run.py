@@ -121,8 +121,10 @@ def test_make_reference_pins_its_recipe_and_train_arguments_replace_settings(tmp
     command = hiveformer_run_command(run, tmp_path / "train", tmp_path / "out")
     assert "--policy.whole_episodes=true" in command and "--policy.whole_episodes=false" not in command
     assert "--policy.stem_point_cloud=true" in command
-    tower = Namespace(**{**vars(run), "task": "tower", "train_arg": []})  # make reference-tower: the same recipe
-    assert set(policy_flags(SEEN_RECIPE)) <= set(hiveformer_run_command(tower, tmp_path / "train", tmp_path / "out"))
+    tower = Namespace(**{**vars(run), "task": "tower", "train_arg": []})  # make reference-tower: annealed
+    command = hiveformer_run_command(tower, tmp_path / "train", tmp_path / "out")
+    assert set(policy_flags(SEEN_RECIPE)) <= set(command) and "--policy.lr_schedule=cosine" in command
+    assert "--policy.lr_schedule=cosine" not in hiveformer_run_command(run, tmp_path / "train", tmp_path / "out")
     unseen = Namespace(**{**vars(run), "unseen": True, "train_arg": []})  # windows and the 7-channel stem
     command = hiveformer_run_command(unseen, tmp_path / "train", tmp_path / "out")
     assert set(policy_flags(UNSEEN_RECIPE)) <= set(command) and "--policy.instruction_position_embeddings=false" not in command
@@ -134,8 +136,8 @@ def test_hiveformer_runs_validate_a_checkpoint_about_every_100_steps_by_default(
     assert parse_arguments([]).curve == 15 and parse_arguments(["--steps", "1000"]).curve == 10
     assert parse_arguments(["--unseen"]).curve == 3 and parse_arguments(["--policy", "act"]).curve == 1
     assert parse_arguments(["--steps", "1500", "--curve", "3"]).curve == 3
-    tower = parse_arguments(["--task", "tower"])  # make reference-tower: 2400 steps, a checkpoint every 600
-    assert (tower.steps, tower.curve) == (2400, 4)
+    tower = parse_arguments(["--task", "tower"])  # make reference-tower: 4800 steps, a checkpoint every 1200
+    assert (tower.steps, tower.curve) == (4800, 4)
     assert parse_arguments(["--task", "tower", "--steps", "1200"]).curve == 4  # as --unseen's, the preset's curve
     assert default_curve(1001) == 7 and default_curve(2) == 1 and default_curve(150) == 1
 
