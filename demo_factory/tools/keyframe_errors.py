@@ -19,14 +19,10 @@ from pathlib import Path
 import numpy as np
 
 from demo_factory.rollout.scene import start_scene
+from demo_factory.sim.kinematics import pose_error
 from demo_factory.tasks import get_task
 
 IMAGE_SIZE = (16, 16)  # the scene is only planned on, not recorded
-
-
-def orientation_error_degrees(q: np.ndarray, r: np.ndarray) -> float:
-    """The angle of the rotation between two unit quaternions (x, y, z, w), in degrees."""
-    return float(np.degrees(2 * np.arccos(min(1.0, abs(float(np.dot(q, r)))))))
 
 
 def keyframe_errors(episodes: list[dict]) -> list[dict]:
@@ -41,10 +37,9 @@ def keyframe_errors(episodes: list[dict]) -> list[dict]:
             world.close()
         for k, (predicted, expert) in enumerate(zip(episode["predicted_keyframes"], plan)):
             predicted = np.asarray(predicted[:7])
-            predicted[3:] /= np.linalg.norm(predicted[3:])
             per_index.setdefault(k, []).append((100 * float(np.linalg.norm(predicted[:2] - expert[:2])),
                                                 100 * float(abs(predicted[2] - expert[2])),
-                                                orientation_error_degrees(predicted[3:], expert[3:])))
+                                                float(np.degrees(pose_error(predicted, expert)[1]))))
     return [{"keyframe": k, "episodes": len(errors),
              **{name: {q: round(float(np.percentile(column, p)), 2) for q, p in (("median", 50), ("p75", 75), ("p90", 90))}
                 for name, column in zip(("xy_cm", "z_cm", "rotation_deg"), np.array(errors).T, strict=True)}}
