@@ -136,9 +136,9 @@ def test_hiveformer_runs_validate_a_checkpoint_about_every_100_steps_by_default(
     assert parse_arguments([]).curve == 15 and parse_arguments(["--steps", "1000"]).curve == 10
     assert parse_arguments(["--unseen"]).curve == 3 and parse_arguments(["--policy", "act"]).curve == 1
     assert parse_arguments(["--steps", "1500", "--curve", "3"]).curve == 3
-    tower = parse_arguments(["--task", "tower"])  # make reference-tower: 4800 steps, a checkpoint every 1200
-    assert (tower.steps, tower.curve) == (4800, 4)
-    assert parse_arguments(["--task", "tower", "--steps", "1200"]).curve == 4  # as --unseen's, the preset's curve
+    tower = parse_arguments(["--task", "tower"])  # make reference-tower: 80 episodes, 6000 steps, validated every 1200
+    assert (tower.episodes_per_variation, tower.steps, tower.curve) == (80, 6000, 5)
+    assert parse_arguments(["--task", "tower", "--steps", "1200"]).curve == 5  # as --unseen's, the preset's curve
     assert default_curve(1001) == 7 and default_curve(2) == 1 and default_curve(150) == 1
 
 
