@@ -17,6 +17,9 @@ import os
 import signal
 import subprocess
 import sys
+import tempfile
+import time
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -31,31 +34,50 @@ SOURCE_REPO_ID = "me/push_buttons_{split}"  # the repo ids the `converted_push_b
 RENUMBERED = ("index", "episode_index", "task_index")  # what split and merge number afresh
 
 
-def run(command: list, env: dict | None = None, timeout: int = 600) -> subprocess.CompletedProcess:
+def run(command: list, env: dict | None = None, timeout: int = 600, finished: str | None = None,
+        exit_grace: int = 120) -> subprocess.CompletedProcess:
     """The command's result; past `timeout` s, the Python stacks of every process it started, then a failure.
 
     faulthandler is on in the command and its children: SIGABRT makes each print where every thread of it
     stands, so a hang (a stuck rendezvous, say) names its place. torchrun starts its ranks in sessions of their
-    own, so they are found as the command's descendants, not by process group."""
-    process = subprocess.Popen([str(c) for c in command], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                               text=True, env={**(env or OFFLINE), "PYTHONFAULTHANDLER": "1"})
-    try:
-        stdout, stderr = process.communicate(timeout=timeout)
-    except subprocess.TimeoutExpired:
-        launcher = psutil.Process(process.pid)
-        processes = [*launcher.children(recursive=True), launcher]
-        for each in processes:
-            with contextlib.suppress(psutil.NoSuchProcess):
-                each.send_signal(signal.SIGABRT)
-        try:
-            stdout, stderr = process.communicate(timeout=60)
-        finally:
-            for each in processes:
-                with contextlib.suppress(psutil.NoSuchProcess):
-                    each.kill()
-        pytest.fail(f"still running after {timeout} s: {' '.join(map(str, command))}\n{stdout[-2000:]}\n"
-                    f"{stderr[-40000:]}")
-    return subprocess.CompletedProcess(process.args, process.returncode, stdout, stderr)
+    own, so they are found as the command's descendants, not by process group.
+
+    `finished`: a line the command logs once its work is done. A command still running `exit_grace` s after it
+    is stopped the same way, with a warning that carries the stacks instead of a failure, and returns code None:
+    the caller checks the work it left (test_accelerate_launch_trains_hiveformer_in_two_processes says why)."""
+    with tempfile.TemporaryDirectory() as logs:
+        out, err = Path(logs, "stdout"), Path(logs, "stderr")
+        with out.open("a") as stdout, err.open("a") as stderr:  # the command's own file descriptors
+            process = subprocess.Popen([str(c) for c in command], stdout=stdout, stderr=stderr, text=True,
+                                       env={**(env or OFFLINE), "PYTHONFAULTHANDLER": "1"})
+        start, finished_at = time.monotonic(), None
+        while process.poll() is None:
+            time.sleep(0.5)
+            now = time.monotonic()
+            if finished and finished_at is None and finished in out.read_text() + err.read_text():
+                finished_at = now
+            if now - start > timeout or (finished_at is not None and now - finished_at > exit_grace):
+                stop_with_stacks(process)
+                report = f"{' '.join(map(str, command))}\n{out.read_text()[-2000:]}\n{err.read_text()[-40000:]}"
+                if finished_at is None:
+                    pytest.fail(f"still running after {timeout} s: {report}")
+                warnings.warn(f"stopped {exit_grace} s after it logged {finished!r}: {report}", stacklevel=2)
+                return subprocess.CompletedProcess(process.args, None, out.read_text(), err.read_text())
+        return subprocess.CompletedProcess(process.args, process.returncode, out.read_text(), err.read_text())
+
+
+def stop_with_stacks(process: subprocess.Popen) -> None:
+    """SIGABRT to the process and every descendant (each prints its stacks), a minute to do so, then SIGKILL."""
+    launcher = psutil.Process(process.pid)
+    processes = [*launcher.children(recursive=True), launcher]
+    for each in processes:
+        with contextlib.suppress(psutil.NoSuchProcess):
+            each.send_signal(signal.SIGABRT)
+    _, alive = psutil.wait_procs(processes, timeout=60)
+    for each in alive:
+        with contextlib.suppress(psutil.NoSuchProcess):
+            each.kill()
+    process.wait()
 
 
 def test_a_command_past_its_timeout_fails_with_the_stacks_of_its_processes():
@@ -71,6 +93,15 @@ def test_a_command_past_its_timeout_fails_with_the_stacks_of_its_processes():
     assert report.count("Fatal Python error: Aborted") == 2 and report.count('File "<string>", line 1') == 2
     child_pid = int(report.splitlines()[1])
     assert not psutil.pid_exists(child_pid) or psutil.Process(child_pid).status() == psutil.STATUS_ZOMBIE
+
+
+def test_a_command_that_hangs_after_its_work_is_stopped_with_a_warning():
+    """`finished`: past `exit_grace` s after that line, the command is stopped with its stacks in a warning."""
+    command = [sys.executable, "-c", "import time; print('End of training', flush=True); time.sleep(600)"]
+    with pytest.warns(UserWarning, match="stopped 2 s after it logged 'End of training'") as caught:
+        result = run(command, timeout=60, finished="End of training", exit_grace=2)
+    assert result.returncode is None and result.stdout == "End of training\n"
+    assert "Fatal Python error: Aborted" in str(caught[0].message)
 
 
 def train_arguments(root: Path, repo_id: str, output_dir: Path, text_encoder: str) -> list:
@@ -123,9 +154,13 @@ def test_accelerate_launch_trains_hiveformer_in_two_processes(converted_push_but
     # loopback interface: by default it takes the address the host name resolves to, which a sandbox may
     # leave unreachable, and then its ranks wait for each other until gloo's 30-minute timeout.
     env = {**OFFLINE, "HF_HOME": str(tmp_path / "hf_home"), "GLOO_SOCKET_IFNAME": "lo"}
-    result = run(command, env=env, timeout=900)
+    # Once in ~25 runs here a rank never exits after "End of training", its checkpoint written: as train()
+    # returns, the main thread, holding the GIL, frees DDP's reducer, whose ProcessGroupGloo destructor joins
+    # gloo's work thread, which waits for the GIL to free the last barrier's tensors (gdb; torch 2.11; the
+    # pattern of pytorch/pytorch#56297). run() stops it 120 s on, with a warning; the checkpoint is checked.
+    result = run(command, env=env, timeout=900, finished="End of training")
     log = result.stdout + result.stderr
-    assert result.returncode == 0, log[-4000:]
+    assert result.returncode in (0, None), log[-4000:]
     assert "Effective batch size: 2 x 2 = 4" in log and "step:2 " in log
 
     checkpoint = output_dir / "checkpoints" / "last"
