@@ -593,6 +593,23 @@ def test_cosine_schedule_anneals_the_authors_rate_to_zero_over_the_run(tiny_data
     assert all(a > b for a, b in zip(rates, rates[1:])) and rates[-1] < 1e-6
 
 
+def test_warmup_ramps_the_rate_up_before_the_cosine_anneals_it(tiny_dataset_root):
+    policy = make_tiny_policy(tiny_dataset_root)
+    config = HiveformerConfig(lr_schedule="cosine", lr_warmup_steps=10, device="cpu")
+    optimizer = config.get_optimizer_preset().build(policy.get_optim_params())
+    scheduler = config.get_scheduler_preset().build(optimizer, num_training_steps=110)
+    rates = []
+    for _ in range(110):
+        rates.append(optimizer.param_groups[0]["lr"])
+        optimizer.step()
+        scheduler.step()
+    assert rates[0] == 0 and rates[5] == pytest.approx(5e-4) and rates[10] == pytest.approx(1e-3)
+    assert rates[60] == pytest.approx(5e-4) and rates[-1] < 1e-6
+    with pytest.raises(ValueError, match="lr_warmup_steps must be >= 0, and 0 unless lr_schedule='cosine'; got 10 "
+                                         "with lr_schedule='constant'"):
+        HiveformerConfig(lr_warmup_steps=10, device="cpu")
+
+
 def test_minilm_is_a_real_pretrained_encoder_that_needs_no_download(tiny_dataset_root):
     policy = make_tiny_policy(tiny_dataset_root, text_encoder="minilm")
     encoder = policy.instruction_encoder

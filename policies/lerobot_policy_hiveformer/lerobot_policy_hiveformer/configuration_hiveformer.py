@@ -138,6 +138,9 @@ class HiveformerConfig(PreTrainedConfig):
     # plateau. On make reference it did not make the result robust to the seed (README: seed 2 52.5 -> 90 %,
     # seed 3 90 -> 37.5 %).
     lr_schedule: str = "constant"
+    # Steps over which the cosine schedule first ramps the rate up linearly from 0 (LeRobot's
+    # cosine_annealing_with_warmup); 0: none. Only with lr_schedule="cosine".
+    lr_warmup_steps: int = 0
 
     # Make glibc's malloc keep the memory tensors free instead of returning it to the kernel and faulting it
     # in again (see allocator.py): CPU train steps take about half as long. The process keeps its peak heap.
@@ -188,6 +191,9 @@ class HiveformerConfig(PreTrainedConfig):
             )
         if self.lr_schedule not in LR_SCHEDULES:
             raise ValueError(f"lr_schedule must be one of {', '.join(LR_SCHEDULES)}; got {self.lr_schedule!r}.")
+        if self.lr_warmup_steps < 0 or (self.lr_warmup_steps and self.lr_schedule != "cosine"):
+            raise ValueError(f"lr_warmup_steps must be >= 0, and 0 unless lr_schedule='cosine'; got "
+                             f"{self.lr_warmup_steps} with lr_schedule={self.lr_schedule!r}.")
         for name, mode in self.normalization_mapping.items():
             if NormalizationMode(mode) is not NormalizationMode.IDENTITY:
                 raise ValueError(
@@ -308,4 +314,6 @@ class HiveformerConfig(PreTrainedConfig):
         )
 
     def get_scheduler_preset(self) -> CosineAnnealingWithWarmupSchedulerConfig | None:
-        return CosineAnnealingWithWarmupSchedulerConfig(num_warmup_steps=0) if self.lr_schedule == "cosine" else None
+        if self.lr_schedule != "cosine":
+            return None
+        return CosineAnnealingWithWarmupSchedulerConfig(num_warmup_steps=self.lr_warmup_steps)
