@@ -154,7 +154,7 @@ def test_accelerate_launch_trains_hiveformer_in_two_processes(converted_push_but
     # loopback interface: by default it takes the address the host name resolves to, which a sandbox may
     # leave unreachable, and then its ranks wait for each other until gloo's 30-minute timeout.
     env = {**OFFLINE, "HF_HOME": str(tmp_path / "hf_home"), "GLOO_SOCKET_IFNAME": "lo"}
-    # Once in ~25 runs here a rank never exits after "End of training", its checkpoint written: as train()
+    # In 3 of 123 runs here a rank never exits after "End of training", its checkpoint written: as train()
     # returns, the main thread, holding the GIL, frees DDP's reducer, whose ProcessGroupGloo destructor joins
     # gloo's work thread, which waits for the GIL to free the last barrier's tensors (gdb; torch 2.11; the
     # pattern of pytorch/pytorch#56297). run() stops it 120 s on, with a warning; the checkpoint is checked.
