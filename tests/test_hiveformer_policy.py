@@ -578,17 +578,22 @@ def test_optimiser_preset_is_the_authors(tiny_dataset_root):
     assert len(plain["params"]) + len(decayed["params"]) == len(list(policy.parameters()))
 
 
-def test_cosine_schedule_anneals_the_authors_rate_to_zero_over_the_run(tiny_dataset_root):
-    policy = make_tiny_policy(tiny_dataset_root)
-    assert policy.config.get_scheduler_preset() is None  # the authors': constant
-    config = HiveformerConfig(lr_schedule="cosine", device="cpu")
+def learning_rates(policy, config: HiveformerConfig, steps: int) -> list[float]:
+    """The rate at each of `steps` optimiser steps, with the optimiser and scheduler built as lerobot-train does."""
     optimizer = config.get_optimizer_preset().build(policy.get_optim_params())
-    scheduler = config.get_scheduler_preset().build(optimizer, num_training_steps=100)  # as lerobot-train builds it
+    scheduler = config.get_scheduler_preset().build(optimizer, num_training_steps=steps)
     rates = []
-    for _ in range(100):
+    for _ in range(steps):
         rates.append(optimizer.param_groups[0]["lr"])
         optimizer.step()
         scheduler.step()
+    return rates
+
+
+def test_cosine_schedule_anneals_the_authors_rate_to_zero_over_the_run(tiny_dataset_root):
+    policy = make_tiny_policy(tiny_dataset_root)
+    assert policy.config.get_scheduler_preset() is None  # the authors': constant
+    rates = learning_rates(policy, HiveformerConfig(lr_schedule="cosine", device="cpu"), steps=100)
     assert rates[0] == pytest.approx(1e-3) and rates[50] == pytest.approx(5e-4)
     assert all(a > b for a, b in zip(rates, rates[1:])) and rates[-1] < 1e-6
 
@@ -596,13 +601,7 @@ def test_cosine_schedule_anneals_the_authors_rate_to_zero_over_the_run(tiny_data
 def test_warmup_ramps_the_rate_up_before_the_cosine_anneals_it(tiny_dataset_root):
     policy = make_tiny_policy(tiny_dataset_root)
     config = HiveformerConfig(lr_schedule="cosine", lr_warmup_steps=10, device="cpu")
-    optimizer = config.get_optimizer_preset().build(policy.get_optim_params())
-    scheduler = config.get_scheduler_preset().build(optimizer, num_training_steps=110)
-    rates = []
-    for _ in range(110):
-        rates.append(optimizer.param_groups[0]["lr"])
-        optimizer.step()
-        scheduler.step()
+    rates = learning_rates(policy, config, steps=110)
     assert rates[0] == 0 and rates[5] == pytest.approx(5e-4) and rates[10] == pytest.approx(1e-3)
     assert rates[60] == pytest.approx(5e-4) and rates[-1] < 1e-6
     with pytest.raises(ValueError, match="lr_warmup_steps must be >= 0, and 0 unless lr_schedule='cosine'; got 10 "

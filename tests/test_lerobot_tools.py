@@ -58,11 +58,12 @@ def run(command: list, env: dict | None = None, timeout: int = 600, finished: st
                 finished_at = now
             if now - start > timeout or (finished_at is not None and now - finished_at > exit_grace):
                 stop_with_stacks(process)
-                report = f"{' '.join(map(str, command))}\n{out.read_text()[-2000:]}\n{err.read_text()[-40000:]}"
+                stdout, stderr = out.read_text(), err.read_text()
+                report = f"{' '.join(map(str, command))}\n{stdout[-2000:]}\n{stderr[-40000:]}"
                 if finished_at is None:
                     pytest.fail(f"still running after {timeout} s: {report}")
                 warnings.warn(f"stopped {exit_grace} s after it logged {finished!r}: {report}", stacklevel=2)
-                return subprocess.CompletedProcess(process.args, None, out.read_text(), err.read_text())
+                return subprocess.CompletedProcess(process.args, None, stdout, stderr)
         return subprocess.CompletedProcess(process.args, process.returncode, out.read_text(), err.read_text())
 
 
