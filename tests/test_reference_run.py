@@ -149,13 +149,27 @@ def test_checkpoints_are_saved_at_every_curve_point_and_at_most_500_steps_apart(
     assert save_interval(2, 2) == 1 and save_interval(1001, 1) == 143
 
 
-def test_unseen_runs_take_the_first_train_ids_or_the_ones_named():
-    from demo_factory.tools.reference_run import missing_test_colours, parse_arguments
+def test_unseen_runs_take_the_first_train_ids_or_the_ones_named_and_say_which_test_ones_they_cannot_compose():
+    from demo_factory.tools.reference_run import (
+        composability_note,
+        parse_arguments,
+        pressed_colours,
+        uncomposable_test_variations,
+    )
 
     assert parse_arguments(["--unseen", "--train-variations", "3"]).variations == ["0", "1", "2"]
     named = parse_arguments(["--unseen", "--variation", "0", "--variation", "2"])
     assert named.variations == ["0", "2"] and named.train_variations is None
-    # The first 20 train ids name every colour of the test variations; 0 and 2 name six of them.
-    assert missing_test_colours([str(i) for i in range(20)]) == []
-    assert missing_test_colours(["0", "2", "3", "5", "6", "22", "28"]) == []  # the README's smallest cover
-    assert "green" not in missing_test_colours(["0", "2"]) and len(missing_test_colours(["0", "2"])) == 12
+    assert pressed_colours(["0", "8"]) == {(0, "green"), (1, "rose"), (2, "black"), (0, "orange"), (1, "navy")}
+    # A test variation is composable when each of its colours was pressed at the same place in training. The
+    # first 20 train ids leave 68 of the 100 test variations; all 100, and the README's 20-id cover, the 9 that
+    # name azure second (no train variation does).
+    first_20 = [str(i) for i in range(20)]
+    assert len(uncomposable_test_variations(first_20)) == 68
+    cover = [0, 1, 2, 4, 6, 7, 9, 11, 14, 15, 19, 27, 28, 30, 31, 34, 45, 62, 70, 89]
+    for train in (range(100), cover):
+        left = uncomposable_test_variations([str(i) for i in train])
+        assert len(left) == 9 and pressed_colours(left) - pressed_colours(train) == {(1, "azure")}
+    note = composability_note(first_20)
+    assert note.startswith("note: 68 of the 100 test variations") and "azure second" in note and "third" in note
+    assert composability_note([str(i) for i in range(100, 200)]) is None  # (test ids: every press is made)
