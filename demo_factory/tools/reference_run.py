@@ -376,7 +376,7 @@ def uncomposable_test_variations(train_variations: list[str]) -> list[int]:
     """The paper's push_buttons test variations (100-199) with a colour at a press position where no train
     variation has it: an instruction that a policy grounding each colour word at its position cannot follow."""
     trained = pressed_colours(train_variations)
-    return [v.id for v in get_task("push_buttons").split_variations("test") if not pressed_colours([v.id]) <= trained]
+    return [v.id for v in get_task("push_buttons").split_variations("test") if not set(enumerate(v.words)) <= trained]
 
 
 def composability_note(train_variations: list[str]) -> str | None:
