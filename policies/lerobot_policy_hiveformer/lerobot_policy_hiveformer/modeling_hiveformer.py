@@ -306,10 +306,12 @@ class ClipInstructionEncoder(InstructionEncoder):
 
 class PretrainedTransformerInstructionEncoder(InstructionEncoder):
     """Frozen pretrained BERT-style text encoder loaded from a local directory; per-token last hidden
-    states of the real tokens (CLS and SEP included)."""
+    states of the real tokens (CLS and SEP included), or with `words_only` its word-piece input embeddings,
+    which carry no context."""
 
-    def __init__(self, model_dir: Path):
+    def __init__(self, model_dir: Path, words_only: bool = False):
         super().__init__()
+        self.words_only = words_only
         from transformers import AutoModel, AutoTokenizer
 
         self.tokenizer = AutoTokenizer.from_pretrained(model_dir, local_files_only=True)
@@ -321,7 +323,10 @@ class PretrainedTransformerInstructionEncoder(InstructionEncoder):
         tokens = self.tokenizer(
             instructions, padding=True, truncation=True, max_length=CLIP_CONTEXT_LENGTH, return_tensors="pt"
         )
-        hidden = self.text_model(**tokens).last_hidden_state
+        if self.words_only:
+            hidden = self.text_model.get_input_embeddings()(tokens["input_ids"])
+        else:
+            hidden = self.text_model(**tokens).last_hidden_state
         lengths = tokens["attention_mask"].sum(dim=1).tolist()
         return [hidden[i, :length].float() for i, length in enumerate(lengths)]
 
@@ -398,8 +403,8 @@ def make_instruction_encoder(config: HiveformerConfig) -> InstructionEncoder:
         return ClipInstructionEncoder(load_clip_text_model(config))
     if config.text_encoder == "clip_tiny_random":
         return ClipInstructionEncoder(tiny_random_clip_text_model())
-    if config.text_encoder == "minilm":
-        return PretrainedTransformerInstructionEncoder(minilm_model_dir())
+    if config.text_encoder in ("minilm", "minilm_words"):
+        return PretrainedTransformerInstructionEncoder(minilm_model_dir(), words_only=config.text_encoder == "minilm_words")
     return OneHotInstructionEncoder(config.instruction_vocabulary)
 
 
