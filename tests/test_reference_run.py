@@ -28,14 +28,14 @@ def test_unseen_reference_run_trains_on_paper_train_ids_and_curves_the_unseen_sp
     assert main(arguments) == 0
     summary = json.loads((out / "reference_run.json").read_text())
     configuration = summary["configuration"]
-    assert configuration["variations"] == ["0", "1"] and configuration["text_encoder"] == "minilm"
+    assert configuration["variations"] == ["0", "1"] and configuration["text_encoder"] == "minilm_words"
     assert set(summary["stage_seconds"]) >= {"generate_train", "generate_test", "convert", "train", "eval"}
     checkpoint = out / "train" / "checkpoints" / "last" / "pretrained_model"
     assert json.loads((checkpoint / "train_config.json").read_text())["seed"] == 3
     config = json.loads((checkpoint / "config.json").read_text())  # the unseen recipe, but for --train-arg's key
     assert config["stem_point_cloud"] is True and config["whole_episodes"] is True
     assert config["instruction_position_embeddings"] is True
-    assert config["text_encoder"] == "minilm" and config["n_history"] == 10
+    assert config["text_encoder"] == "minilm_words" and config["n_history"] == 10
     splits = summary["results"]["splits"]
     assert {"train", "test_unseen_synthetic", "test_unseen_corrupted", "test_unseen_human"} <= set(splits)
     # The test episodes are those of the variations the human-written sentences name, with those sentences.
@@ -134,7 +134,7 @@ def test_hiveformer_runs_validate_a_checkpoint_about_every_100_steps_by_default(
     from demo_factory.tools.reference_run import default_curve, parse_arguments
 
     assert parse_arguments([]).curve == 15 and parse_arguments(["--steps", "1000"]).curve == 10
-    assert parse_arguments(["--unseen"]).curve == 3 and parse_arguments(["--policy", "act"]).curve == 1
+    assert parse_arguments(["--unseen"]).curve == 5 and parse_arguments(["--policy", "act"]).curve == 1
     assert parse_arguments(["--steps", "1500", "--curve", "3"]).curve == 3
     tower = parse_arguments(["--task", "tower"])  # make reference-tower: 80 episodes, 6000 steps, validated every 1200
     assert (tower.episodes_per_variation, tower.steps, tower.curve) == (80, 6000, 5)
@@ -149,14 +149,17 @@ def test_checkpoints_are_saved_at_every_curve_point_and_at_most_500_steps_apart(
     assert save_interval(2, 2) == 1 and save_interval(1001, 1) == 143
 
 
-def test_unseen_runs_take_the_first_train_ids_or_the_ones_named_and_say_which_test_ones_they_cannot_compose():
+def test_unseen_runs_take_the_cover_or_the_train_ids_asked_and_say_which_test_ones_they_cannot_compose():
     from demo_factory.tools.reference_run import (
+        UNSEEN_VARIATIONS,
         composability_note,
         parse_arguments,
         pressed_colours,
         uncomposable_test_variations,
     )
 
+    default = parse_arguments(["--unseen"])
+    assert default.variations == list(UNSEEN_VARIATIONS) and (default.steps, default.text_encoder) == (4500, "minilm_words")
     assert parse_arguments(["--unseen", "--train-variations", "3"]).variations == ["0", "1", "2"]
     named = parse_arguments(["--unseen", "--variation", "0", "--variation", "2"])
     assert named.variations == ["0", "2"] and named.train_variations is None
@@ -166,8 +169,7 @@ def test_unseen_runs_take_the_first_train_ids_or_the_ones_named_and_say_which_te
     # name azure second (no train variation does).
     first_20 = [str(i) for i in range(20)]
     assert len(uncomposable_test_variations(first_20)) == 68
-    cover = [0, 1, 2, 4, 6, 7, 9, 11, 14, 15, 19, 27, 28, 30, 31, 34, 45, 62, 70, 89]
-    for train in (range(100), cover):
+    for train in (range(100), UNSEEN_VARIATIONS):
         left = uncomposable_test_variations([str(i) for i in train])
         assert len(left) == 9 and pressed_colours(left) - pressed_colours(train) == {(1, "azure")}
     note = composability_note(first_20)
