@@ -77,7 +77,7 @@ def test_curve_must_divide_the_steps():
                   ["--unseen", "--variation", "3", "--train-variations", "5"], ["--train-variations", "5"],
                   ["--unseen", "--train-variations", "101"], ["--human-instructions", "x.json"],
                   ["--unseen", "--human-instructions", "/nonexistent.json"], ["--train-arg", "policy.whole_episodes"],
-                  ["--policy", "act", "--train-arg=--steps=3"]):
+                  ["--policy", "act", "--train-arg=--steps=3"], ["--unseen", "--text-encoder", "bogus"]):
         with pytest.raises(SystemExit):
             main(wrong)
 

@@ -41,6 +41,7 @@ import time
 from pathlib import Path
 
 from lerobot.common.train_utils import get_step_checkpoint_dir
+from lerobot_policy_hiveformer.configuration_hiveformer import TEXT_ENCODERS
 
 from demo_factory.convert.converter import read_dataset_provenance
 from demo_factory.convert.usage import act_chunk, act_train_args
@@ -308,7 +309,7 @@ def parse_arguments(argv=None) -> argparse.Namespace:
     parser.add_argument("--steps", type=int, help=f"lerobot-train steps (default: {REFERENCE_STEPS}; tower: {TOWER['steps']}; "
                         f"--unseen: {UNSEEN['steps']}; ACT: 1000)")
     parser.add_argument("--batch-size", type=int, help=f"default: {REFERENCE_BATCH_SIZE}; ACT: 8")
-    parser.add_argument("--text-encoder", help=f"HiveFormer instruction encoder (default: {REFERENCE_TEXT_ENCODER}; "
+    parser.add_argument("--text-encoder", choices=TEXT_ENCODERS, help=f"HiveFormer instruction encoder (default: {REFERENCE_TEXT_ENCODER}; "
                         f"--unseen: {UNSEEN['text_encoder']})")
     parser.add_argument("--n-history", type=int, help="HiveFormer keyframes of history (default: the longest "
                         "training episode)")
