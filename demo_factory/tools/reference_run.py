@@ -82,7 +82,7 @@ PRESETS = {
 # on a 2-core Xeon; README). `--train-variations N` takes ids 0..N-1 instead.
 UNSEEN_VARIATIONS = ("0", "1", "2", "4", "6", "7", "9", "11", "14", "15", "19", "27", "28", "30", "31", "34", "45",
                      "62", "70", "89")
-UNSEEN = {"train_variations": None, "episodes_per_variation": 15, "test_episodes_per_variation": 1,
+UNSEEN = {"episodes_per_variation": 15, "test_episodes_per_variation": 1,
           "text_encoder": "minilm_words", "steps": 4500, "curve": 5, "eval_episodes": 40}
 CURVE_SPLITS = {False: ("train",), True: ("train", "test_unseen_synthetic")}
 # `make reference-unseen`: windows ending at every frame and the 7-channel CNN stem, with the instruction
@@ -309,8 +309,8 @@ def parse_arguments(argv=None) -> argparse.Namespace:
     parser.add_argument("--steps", type=int, help=f"lerobot-train steps (default: {REFERENCE_STEPS}; tower: {TOWER['steps']}; "
                         f"--unseen: {UNSEEN['steps']}; ACT: 1000)")
     parser.add_argument("--batch-size", type=int, help=f"default: {REFERENCE_BATCH_SIZE}; ACT: 8")
-    parser.add_argument("--text-encoder", choices=TEXT_ENCODERS, help=f"HiveFormer instruction encoder (default: {REFERENCE_TEXT_ENCODER}; "
-                        f"--unseen: {UNSEEN['text_encoder']})")
+    parser.add_argument("--text-encoder", choices=TEXT_ENCODERS, help="HiveFormer instruction encoder (default: "
+                        f"{REFERENCE_TEXT_ENCODER}; --unseen: {UNSEEN['text_encoder']})")
     parser.add_argument("--n-history", type=int, help="HiveFormer keyframes of history (default: the longest "
                         "training episode)")
     parser.add_argument("--curve", type=int, help="checkpoints evaluated on validation scenes of the seen variations "

@@ -404,7 +404,8 @@ def make_instruction_encoder(config: HiveformerConfig) -> InstructionEncoder:
     if config.text_encoder == "clip_tiny_random":
         return ClipInstructionEncoder(tiny_random_clip_text_model())
     if config.text_encoder in ("minilm", "minilm_words"):
-        return PretrainedTransformerInstructionEncoder(minilm_model_dir(), words_only=config.text_encoder == "minilm_words")
+        words_only = config.text_encoder == "minilm_words"
+        return PretrainedTransformerInstructionEncoder(minilm_model_dir(), words_only=words_only)
     return OneHotInstructionEncoder(config.instruction_vocabulary)
 
 
