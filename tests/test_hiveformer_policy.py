@@ -293,6 +293,7 @@ def test_save_and_load_give_identical_outputs(tiny_dataset_root, tmp_path):
         {"use_position_embeddings": False},
         {"instruction_position_embeddings": False},
         {"stem_point_cloud": True},
+        {"instruction_layers": 1},
     ],
 )
 def test_ablations_train_and_act(tiny_dataset_root, ablation):
@@ -334,6 +335,21 @@ def test_instruction_token_order_matters_only_with_position_embeddings(tiny_data
         reordered = policy.model.contextualise(tokens, obs.step_valid, reversed_features, mask)
     assert torch.allclose(plain[1], reordered[1])  # the other sample's instruction is unchanged
     assert torch.allclose(plain[0], reordered[0], atol=1e-5) is not positions
+
+
+def test_instruction_layers_give_each_token_the_words_before_it_only(tiny_dataset_root):
+    """With instruction_layers, a token's features change with the words before it (even without position
+    embeddings) and never with the words after it: causal, as CLIP's text transformer."""
+    policy = make_tiny_policy(tiny_dataset_root, instruction_layers=1, instruction_position_embeddings=False).eval()
+    features = torch.randn(1, 6, policy.model.instruction_to_token.in_features)
+    changed_last, changed_first = features.clone(), features.clone()
+    changed_last[0, -1] += 1.0
+    changed_first[0, 0] += 1.0
+    with torch.no_grad():
+        plain, late, early = (policy.model.instruction_tokens(x) for x in (features, changed_last, changed_first))
+    assert torch.allclose(plain[0, :-1], late[0, :-1], atol=1e-6)
+    assert not torch.allclose(plain[0, -1], late[0, -1], atol=1e-4)
+    assert all(not torch.allclose(plain[0, i], early[0, i], atol=1e-4) for i in range(1, 6))
 
 
 def test_n_history_defaults_to_the_longest_episode_of_the_dataset(tiny_dataset_root):

@@ -115,6 +115,11 @@ class HiveformerConfig(PreTrainedConfig):
     # Learned position embeddings on the instruction tokens, as the authors': token order is what tells
     # "red, then blue" from "blue, then red".
     instruction_position_embeddings: bool = True
+    # Learned causal self-attention layers over the instruction tokens (after their projection and
+    # position embeddings), so that each token sees the words before it: what tells the second colour
+    # word of "push the red button, then the blue button" from the first. CLIP's text transformer is
+    # causal and gives the authors' tokens that left context; "minilm_words" has none. 0: none.
+    instruction_layers: int = 0
     # Training only: each sample's instruction is drawn among the paraphrases the dataset lists for its
     # task (`meta/task_paraphrases.json`: task string -> instructions that mean the same), as the authors
     # draw among a variation's instructions. Not with one_hot, whose codes name strings, not meanings.
@@ -174,6 +179,8 @@ class HiveformerConfig(PreTrainedConfig):
             raise ValueError(f"history_cache_mib must be >= 0, got {self.history_cache_mib}.")
         if self.num_layers < 1:
             raise ValueError(f"num_layers must be >= 1, got {self.num_layers}.")
+        if self.instruction_layers < 0:
+            raise ValueError(f"instruction_layers must be >= 0, got {self.instruction_layers}.")
         if self.feedforward_dim < 1:
             raise ValueError(f"feedforward_dim must be >= 1, got {self.feedforward_dim}.")
         if not 0.0 <= self.dropout < 1.0:

@@ -833,6 +833,11 @@ class HiveformerModel(nn.Module):
         self.instruction_to_token = nn.Linear(instruction_feature_dim, dim)
         if config.instruction_position_embeddings:
             self.instruction_position_embedding = nn.Embedding(CLIP_CONTEXT_LENGTH, dim)
+        if config.instruction_layers:
+            layer = nn.TransformerEncoderLayer(
+                dim, config.num_heads, config.feedforward_dim, config.dropout, batch_first=True
+            )
+            self.instruction_layers = nn.TransformerEncoder(layer, config.instruction_layers, enable_nested_tensor=False)
         self.step_embedding = nn.Embedding(config.history_length, dim)
         # One embedding per camera, plus one for the gripper-state token.
         self.source_embedding = nn.Embedding(self.num_cameras + 1, dim)
@@ -897,6 +902,17 @@ class HiveformerModel(nn.Module):
         tokens = torch.cat([visual.flatten(2, 3), gripper_token.unsqueeze(2)], dim=2)  # (B, T, N, D)
         return EncodedSteps(tokens=tokens, encoded=encode, skips=skips)
 
+    def instruction_tokens(self, instruction: Tensor) -> Tensor:
+        """Instruction features (B, L, F) -> the tokens the steps attend to (B, L, D)."""
+        tokens = self.instruction_to_token(instruction)
+        length = tokens.shape[1]
+        if self.config.instruction_position_embeddings:
+            tokens = tokens + self.instruction_position_embedding.weight[:length]
+        if self.config.instruction_layers:  # padding comes after the real tokens, so no real token sees it
+            causal = nn.Transformer.generate_square_subsequent_mask(length, device=tokens.device, dtype=tokens.dtype)
+            tokens = self.instruction_layers(tokens, mask=causal, is_causal=True)
+        return tokens
+
     def contextualise(
         self,
         tokens: Tensor,
@@ -916,10 +932,7 @@ class HiveformerModel(nn.Module):
         # the episode and a rollout at the same keyframe give each step the same embedding.
         ordinal = (step_valid.long().cumsum(1) - 1).clamp_min(0)
         x = tokens + self.step_embedding(ordinal).unsqueeze(2)
-        instruction_tokens = self.instruction_to_token(instruction)
-        if self.config.instruction_position_embeddings:
-            length = instruction_tokens.shape[1]
-            instruction_tokens = instruction_tokens + self.instruction_position_embedding.weight[:length]
+        instruction_tokens = self.instruction_tokens(instruction)
         layers = self.layers[:-1] if last_step_only else self.layers
         if layers:  # on the real steps only, packed; padding steps come back as zeros (nothing attends to them)
             packing = PackedSteps.of(step_valid)
