@@ -42,6 +42,35 @@ def test_push_buttons_expert_presses_9_mm_so_a_press_up_to_5_mm_high_still_count
     assert travel[0.005] >= PRESS_DEPTH - 0.0055, travel
 
 
+def test_a_pressed_button_turns_lime_and_stays_lime_as_in_rlbench():
+    """The authors' push_buttons3 colours a button green (0, 1, 0) once pressed and never back: the scene shows
+    which buttons are done. After the expert's first press and its move back up, every camera that sees the
+    pressed cap sees lime on it, and no other button shows any."""
+    env = KeyframeEnv("push_buttons", default_episodes("push_buttons", "train", 1), image_size=(64, 64))
+
+    def lime_pixels():
+        counts = {}
+        for name, view in env.world.render_cameras().items():
+            for colour, body in env.sim_task.buttons.items():
+                rgb = view.rgb[view.segmentation == body].astype(int)
+                counts[name, colour] = int(((rgb[:, 1] > 150) & (rgb[:, 0] < 90) & (rgb[:, 2] < 90)).sum())
+        return counts
+
+    try:
+        env.reset()
+        assert not any(lime_pixels().values())
+        for keyframe in env.expert_keyframes[:3]:  # above the first button, press, back up
+            env.step(np.r_[keyframe.pose, keyframe.gripper_open])
+        first = env.sim_task.instructed.words[0]
+        assert env.sim_task.pressed_order == [first]
+        assert p.getJointState(env.sim_task.buttons[first], 0, physicsClientId=env.world.client)[0] > -0.003
+        counts = lime_pixels()
+    finally:
+        env.close()
+    assert all(counts[camera, first] >= 5 for camera in ("left_shoulder", "right_shoulder", "wrist")), counts
+    assert not any(n for (camera, colour), n in counts.items() if colour != first), counts
+
+
 def test_tower_expert_grips_at_the_end_of_each_move_down_not_in_a_keyframe_of_its_own():
     """Per cube: above it (open), down to it and close, up; above the target, down and open, up. Executed as
     keyframes, the close holds the cube in the fingers at the move's end, and the open leaves it in place."""

@@ -23,6 +23,11 @@ TOUCHED_AT = 0.001  # cap travel (m) from which a press that did not count is "t
 APPROACH_HEIGHT = 0.06  # above the cap, before pressing and after
 WORKSPACE = ((0.38, 0.62), (-0.22, 0.22))  # x and y ranges of button centres
 MIN_SPACING = 0.12
+# A pressed cap turns lime and stays lime for the rest of the episode, as in the authors' push_buttons3 (its
+# `step` colours a button's top plate and wrap green once its joint condition holds; nothing resets it): the
+# scene shows which buttons are done. Without it, only the history tells, and policies pressed the first
+# instructed button again at the third press (README, unseen). Lime is not in the palette, so never a button.
+PRESSED_RGBA = rgba("lime")
 
 
 def _sequence_text(colours: tuple[str, ...], fmt: str, then: str, last_then: str | None = None) -> str:
@@ -93,6 +98,8 @@ class PushButtons(Task):
             position = p.getJointState(body, 0, physicsClientId=world.client)[0]
             down = position < PRESSED_AT
             if down and not self._down[colour]:
+                if colour not in self.pressed_order:
+                    p.changeVisualShape(body, 0, rgbaColor=PRESSED_RGBA, physicsClientId=world.client)
                 self.pressed_order.append(colour)
             self._down[colour] = down
             self.deepest[colour] = max(self.deepest[colour], -position)
