@@ -6,7 +6,7 @@ import pytest
 
 from demo_factory.evaluate.env import KeyframeEnv, default_episodes
 from demo_factory.generate import job_requests, run_requests
-from demo_factory.tasks.push_buttons import PRESS_DEPTH
+from demo_factory.tasks.push_buttons import PRESS_DEPTH, PRESSED_AT
 
 
 @pytest.mark.slow
@@ -63,7 +63,7 @@ def test_a_pressed_button_turns_lime_and_stays_lime_as_in_rlbench():
             env.step(np.r_[keyframe.pose, keyframe.gripper_open])
         first = env.sim_task.instructed.words[0]
         assert env.sim_task.pressed_order == [first]
-        assert p.getJointState(env.sim_task.buttons[first], 0, physicsClientId=env.world.client)[0] > -0.003
+        assert p.getJointState(env.sim_task.buttons[first], 0, physicsClientId=env.world.client)[0] > PRESSED_AT
         counts = lime_pixels()
     finally:
         env.close()
