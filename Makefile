@@ -52,7 +52,7 @@ bench: install
 
 # The reference run (not part of `make test`): push_buttons demos → dataset → lerobot-train HiveFormer
 # → a checkpoint every 100 steps evaluated on validation scenes → the best one evaluated closed loop on
-# the test scenes, on a 2-core CPU in 30-50 minutes; resumes if interrupted. Results in outputs/reference/.
+# the test scenes, on a 2-core CPU in 15-50 minutes; resumes if interrupted. Results in outputs/reference/.
 reference: install
 	$(BIN)/python -m demo_factory.tools.reference_run --out outputs/reference
 
