@@ -50,9 +50,10 @@ test: install
 bench: install
 	$(BIN)/python -m demo_factory.tools.bench --out bench/results.json
 
-# The reference run (not part of `make test`): push_buttons demos → dataset → lerobot-train HiveFormer
-# → a checkpoint every 100 steps evaluated on validation scenes → the best one evaluated closed loop on
-# the test scenes, on a 2-core CPU in 15-50 minutes; resumes if interrupted. Results in outputs/reference/.
+# The reference run (not part of `make test`): push_buttons demos (three seen variations, 40 episodes each
+# and 60 more of the one-button one) → dataset → lerobot-train HiveFormer → a checkpoint every 100 steps
+# evaluated on validation scenes → the best one evaluated closed loop on the test scenes, on a 2-core CPU in
+# 15-50 minutes; resumes if interrupted. Results in outputs/reference/.
 reference: install
 	$(BIN)/python -m demo_factory.tools.reference_run --out outputs/reference
 

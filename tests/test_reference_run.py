@@ -77,7 +77,8 @@ def test_curve_must_divide_the_steps():
                   ["--unseen", "--variation", "3", "--train-variations", "5"], ["--train-variations", "5"],
                   ["--unseen", "--train-variations", "101"], ["--human-instructions", "x.json"],
                   ["--unseen", "--human-instructions", "/nonexistent.json"], ["--train-arg", "policy.whole_episodes"],
-                  ["--policy", "act", "--train-arg=--steps=3"], ["--unseen", "--text-encoder", "bogus"]):
+                  ["--policy", "act", "--train-arg=--steps=3"], ["--unseen", "--text-encoder", "bogus"],
+                  ["--extra-episodes", "-1"], ["--unseen", "--extra-episodes", "5"], ["--policy", "act", "--extra-episodes", "5"]):
         with pytest.raises(SystemExit):
             main(wrong)
 
@@ -140,6 +141,30 @@ def test_hiveformer_runs_validate_a_checkpoint_about_every_100_steps_by_default(
     assert (tower.episodes_per_variation, tower.steps, tower.curve) == (80, 6000, 5)
     assert parse_arguments(["--task", "tower", "--steps", "1200"]).curve == 5  # as --unseen's, the preset's curve
     assert default_curve(1001) == 7 and default_curve(2) == 1 and default_curve(150) == 1
+
+
+def test_make_reference_gives_its_one_button_variation_more_episodes_of_their_own_scenes(tmp_path):
+    import subprocess
+
+    from demo_factory.tools.reference_run import (
+        EXTRA_EPISODES,
+        extra_generation_command,
+        parse_arguments,
+        single_colour_variations,
+    )
+
+    assert single_colour_variations("tower", ["46", "0", "1", "red"]) == ["46", "red"]  # green: one cube
+    assert parse_arguments([]).extra_episodes == EXTRA_EPISODES  # make reference: 205 (maroon), 100 in all
+    assert parse_arguments(["--task", "tower"]).extra_episodes == parse_arguments(["--unseen"]).extra_episodes == 0
+    assert extra_generation_command(parse_arguments(["--extra-episodes", "0"]), tmp_path) is None
+    assert extra_generation_command(parse_arguments(["--variation", "24", "--variation", "2"]), tmp_path) is None
+    args = parse_arguments(["--variation", "navy", "--variation", "205", "--variation", "2", "--extra-episodes", "2",
+                            "--image-size", "32", "--workers", "1"])
+    subprocess.run(extra_generation_command(args, tmp_path / "extra"), check=True, capture_output=True)
+    recorded = sorted(p.name for p in (tmp_path / "extra").glob("*.mcap"))
+    # Two episodes of each one-button variation (navy is a colour sequence, 205 an id), none of the three-button one.
+    assert len(recorded) == 4 and sum("var0205" in name for name in recorded) == 2
+    assert not any("var0002_" in name for name in recorded)
 
 
 def test_checkpoints_are_saved_at_every_curve_point_and_at_most_500_steps_apart():
