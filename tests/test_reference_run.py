@@ -156,11 +156,11 @@ def test_make_reference_gives_its_one_button_variation_more_episodes_of_their_ow
     assert single_colour_variations("tower", ["46", "0", "1", "red"]) == ["46", "red"]  # green: one cube
     assert parse_arguments([]).extra_episodes == EXTRA_EPISODES  # make reference: 205 (maroon), 100 in all
     assert parse_arguments(["--task", "tower"]).extra_episodes == parse_arguments(["--unseen"]).extra_episodes == 0
-    assert extra_generation_command(parse_arguments(["--extra-episodes", "0"]), tmp_path) is None
-    assert extra_generation_command(parse_arguments(["--variation", "24", "--variation", "2"]), tmp_path) is None
+    assert extra_generation_command(parse_arguments(["--extra-episodes", "0"])) is None
+    assert extra_generation_command(parse_arguments(["--variation", "24", "--variation", "2"])) is None
     args = parse_arguments(["--variation", "navy", "--variation", "205", "--variation", "2", "--extra-episodes", "2",
                             "--image-size", "32", "--workers", "1"])
-    subprocess.run(extra_generation_command(args, tmp_path / "extra"), check=True, capture_output=True)
+    subprocess.run(extra_generation_command(args) + ["--out", str(tmp_path / "extra")], check=True, capture_output=True)
     recorded = sorted(p.name for p in (tmp_path / "extra").glob("*.mcap"))
     # Two episodes of each one-button variation (navy is a colour sequence, 205 an id), none of the three-button one.
     assert len(recorded) == 4 and sum("var0205" in name for name in recorded) == 2

@@ -280,6 +280,12 @@ def stage(name: str, done: Path, timings: dict, command: list[str], out: Path) -
     print(f"[{name}] {timings[name]:.0f} s", flush=True)
 
 
+def generation_stage(name: str, folder: Path, timings: dict, command: list[str], out: Path) -> None:
+    """A `demo-factory generate` stage into `folder`, marked complete there once it has run (resume)."""
+    stage(name, folder / ".complete", timings, command + ["--out", str(folder)], out)
+    (folder / ".complete").touch()
+
+
 def parse_arguments(argv=None) -> argparse.Namespace:
     """The run's options, checked, with every default filled in and `variations` the seen variations."""
     parser = argparse.ArgumentParser(prog="python -m demo_factory.tools.reference_run", description=__doc__,
@@ -421,18 +427,17 @@ def generate_command(args: argparse.Namespace) -> list[str]:
 def single_colour_variations(task_name: str, variations: list[str]) -> list[str]:
     """The variations (ids or colour sequences) that name one colour: push_buttons' one button, tower's one cube."""
     task = get_task(task_name)
-    return [v for v in variations if len(task.variation(int(v)).words if v.isdigit() else v.split(",")) == 1]
+    return [v for v in variations if len(task.parse_variation(v).words) == 1]
 
 
-def extra_generation_command(args: argparse.Namespace, folder: Path) -> list[str] | None:
-    """The generation of --extra-episodes more training episodes of each one-colour seen variation into
-    `folder`, or None when there are none to make."""
+def extra_generation_command(args: argparse.Namespace) -> list[str] | None:
+    """The generation (without --out) of --extra-episodes more training episodes of each one-colour seen
+    variation, or None when there are none to make."""
     variations = single_colour_variations(args.task, args.variations) if args.extra_episodes else []
     if not variations:
         return None
     return generate_command(args) + ["--split", "train", *[f"--variation={v}" for v in variations],
-                                     "--episodes-per-variation", str(args.extra_episodes), "--seed", str(EXTRA_SEED),
-                                     "--out", str(folder)]
+                                     "--episodes-per-variation", str(args.extra_episodes), "--seed", str(EXTRA_SEED)]
 
 
 def main(argv=None) -> int:
@@ -448,24 +453,19 @@ def main(argv=None) -> int:
 
     raw, dataset, train, evaluation = out / "raw", out / "dataset", out / "train", out / "eval"
     generate = generate_command(args)
-    stage("generate_train", raw / "train" / ".complete", timings,
-          generate + ["--split", "train", *[f"--variation={v}" for v in args.variations],
-                      "--episodes-per-variation", str(args.episodes_per_variation), "--out", str(raw / "train")], out)
-    (raw / "train" / ".complete").touch()
-    if extra := extra_generation_command(args, raw / "train_extra"):
-        stage("generate_train_extra", raw / "train_extra" / ".complete", timings, extra, out)
-        (raw / "train_extra" / ".complete").touch()
+    generation_stage("generate_train", raw / "train", timings,
+                     generate + ["--split", "train", *[f"--variation={v}" for v in args.variations],
+                                 "--episodes-per-variation", str(args.episodes_per_variation)], out)
+    if extra := extra_generation_command(args):
+        generation_stage("generate_train_extra", raw / "train_extra", timings, extra, out)
     if args.unseen:  # the test variations the authors' human-written sentences name
         human = args.human_instructions or shipped_human_instructions(args.task)
-        stage("generate_test", raw / "test" / ".complete", timings,
-              generate + ["--split", "test", "--variations-from", str(human), "--episodes-per-variation",
-                          str(UNSEEN["test_episodes_per_variation"]), "--seed", "1", "--out", str(raw / "test")], out)
-        (raw / "test" / ".complete").touch()
+        generation_stage("generate_test", raw / "test", timings,
+                         generate + ["--split", "test", "--variations-from", str(human), "--episodes-per-variation",
+                                     str(UNSEEN["test_episodes_per_variation"]), "--seed", "1"], out)
     elif args.test_episodes:
-        stage("generate_test", raw / "test" / ".complete", timings,
-              generate + ["--split", "test", "--episodes", str(args.test_episodes), "--seed", "1",
-                          "--out", str(raw / "test")], out)
-        (raw / "test" / ".complete").touch()
+        generation_stage("generate_test", raw / "test", timings,
+                         generate + ["--split", "test", "--episodes", str(args.test_episodes), "--seed", "1"], out)
     if not (dataset / "train").exists():
         shutil.rmtree(dataset, ignore_errors=True)
     stage("convert", dataset / "train", timings,
