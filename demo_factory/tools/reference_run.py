@@ -424,6 +424,12 @@ def generate_command(args: argparse.Namespace) -> list[str]:
             "--workers", str(args.workers), *(["--dense-fps", str(DENSE_FPS)] if args.policy != "hiveformer" else [])]
 
 
+def train_generation_command(args: argparse.Namespace, variations: list[str], episodes: int) -> list[str]:
+    """`demo-factory generate` of `episodes` training episodes of each of `variations` (without --out)."""
+    return generate_command(args) + ["--split", "train", *[f"--variation={v}" for v in variations],
+                                     "--episodes-per-variation", str(episodes)]
+
+
 def single_colour_variations(task_name: str, variations: list[str]) -> list[str]:
     """The variations (ids or colour sequences) that name one colour: push_buttons' one button, tower's one cube."""
     task = get_task(task_name)
@@ -436,8 +442,7 @@ def extra_generation_command(args: argparse.Namespace) -> list[str] | None:
     variations = single_colour_variations(args.task, args.variations) if args.extra_episodes else []
     if not variations:
         return None
-    return generate_command(args) + ["--split", "train", *[f"--variation={v}" for v in variations],
-                                     "--episodes-per-variation", str(args.extra_episodes), "--seed", str(EXTRA_SEED)]
+    return train_generation_command(args, variations, args.extra_episodes) + ["--seed", str(EXTRA_SEED)]
 
 
 def main(argv=None) -> int:
@@ -452,20 +457,20 @@ def main(argv=None) -> int:
     began = time.time()
 
     raw, dataset, train, evaluation = out / "raw", out / "dataset", out / "train", out / "eval"
-    generate = generate_command(args)
     generation_stage("generate_train", raw / "train", timings,
-                     generate + ["--split", "train", *[f"--variation={v}" for v in args.variations],
-                                 "--episodes-per-variation", str(args.episodes_per_variation)], out)
+                     train_generation_command(args, args.variations, args.episodes_per_variation), out)
     if extra := extra_generation_command(args):
         generation_stage("generate_train_extra", raw / "train_extra", timings, extra, out)
     if args.unseen:  # the test variations the authors' human-written sentences name
         human = args.human_instructions or shipped_human_instructions(args.task)
         generation_stage("generate_test", raw / "test", timings,
-                         generate + ["--split", "test", "--variations-from", str(human), "--episodes-per-variation",
-                                     str(UNSEEN["test_episodes_per_variation"]), "--seed", "1"], out)
+                         generate_command(args) + ["--split", "test", "--variations-from", str(human),
+                                                   "--episodes-per-variation",
+                                                   str(UNSEEN["test_episodes_per_variation"]), "--seed", "1"], out)
     elif args.test_episodes:
         generation_stage("generate_test", raw / "test", timings,
-                         generate + ["--split", "test", "--episodes", str(args.test_episodes), "--seed", "1"], out)
+                         generate_command(args) + ["--split", "test", "--episodes", str(args.test_episodes), "--seed",
+                                                   "1"], out)
     if not (dataset / "train").exists():
         shutil.rmtree(dataset, ignore_errors=True)
     stage("convert", dataset / "train", timings,
