@@ -445,6 +445,20 @@ def extra_generation_command(args: argparse.Namespace) -> list[str] | None:
     return train_generation_command(args, variations, args.extra_episodes) + ["--seed", str(EXTRA_SEED)]
 
 
+def test_generation_command(args: argparse.Namespace) -> list[str] | None:
+    """`demo-factory generate` of the test split (without --out): with --unseen, episodes of each test variation
+    that the human-written sentences name; else --test-episodes episodes; None when there are none."""
+    if args.unseen:  # the test variations the authors' human-written sentences name
+        human = args.human_instructions or shipped_human_instructions(args.task)
+        which = ["--variations-from", str(human),
+                 "--episodes-per-variation", str(UNSEEN["test_episodes_per_variation"])]
+    elif args.test_episodes:
+        which = ["--episodes", str(args.test_episodes)]
+    else:
+        return None
+    return generate_command(args) + ["--split", "test", *which, "--seed", "1"]
+
+
 def main(argv=None) -> int:
     args = parse_arguments(argv)
     if args.unseen and (note := composability_note(args.variations)):
@@ -461,16 +475,8 @@ def main(argv=None) -> int:
                      train_generation_command(args, args.variations, args.episodes_per_variation), out)
     if extra := extra_generation_command(args):
         generation_stage("generate_train_extra", raw / "train_extra", timings, extra, out)
-    if args.unseen:  # the test variations the authors' human-written sentences name
-        human = args.human_instructions or shipped_human_instructions(args.task)
-        generation_stage("generate_test", raw / "test", timings,
-                         generate_command(args) + ["--split", "test", "--variations-from", str(human),
-                                                   "--episodes-per-variation",
-                                                   str(UNSEEN["test_episodes_per_variation"]), "--seed", "1"], out)
-    elif args.test_episodes:
-        generation_stage("generate_test", raw / "test", timings,
-                         generate_command(args) + ["--split", "test", "--episodes", str(args.test_episodes), "--seed",
-                                                   "1"], out)
+    if test := test_generation_command(args):
+        generation_stage("generate_test", raw / "test", timings, test, out)
     if not (dataset / "train").exists():
         shutil.rmtree(dataset, ignore_errors=True)
     stage("convert", dataset / "train", timings,
