@@ -445,10 +445,10 @@ def extra_generation_command(args: argparse.Namespace) -> list[str] | None:
     return train_generation_command(args, variations, args.extra_episodes) + ["--seed", str(EXTRA_SEED)]
 
 
-def test_generation_command(args: argparse.Namespace) -> list[str] | None:
+def generate_test_command(args: argparse.Namespace) -> list[str] | None:
     """`demo-factory generate` of the test split (without --out): with --unseen, episodes of each test variation
     that the human-written sentences name; else --test-episodes episodes; None when there are none."""
-    if args.unseen:  # the test variations the authors' human-written sentences name
+    if args.unseen:
         human = args.human_instructions or shipped_human_instructions(args.task)
         which = ["--variations-from", str(human),
                  "--episodes-per-variation", str(UNSEEN["test_episodes_per_variation"])]
@@ -475,7 +475,7 @@ def main(argv=None) -> int:
                      train_generation_command(args, args.variations, args.episodes_per_variation), out)
     if extra := extra_generation_command(args):
         generation_stage("generate_train_extra", raw / "train_extra", timings, extra, out)
-    if test := test_generation_command(args):
+    if test := generate_test_command(args):
         generation_stage("generate_test", raw / "test", timings, test, out)
     if not (dataset / "train").exists():
         shutil.rmtree(dataset, ignore_errors=True)
