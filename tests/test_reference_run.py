@@ -122,9 +122,10 @@ def test_make_reference_pins_its_recipe_and_train_arguments_replace_settings(tmp
     command = hiveformer_run_command(run, tmp_path / "train", tmp_path / "out")
     assert "--policy.whole_episodes=true" in command and "--policy.whole_episodes=false" not in command
     assert "--policy.stem_point_cloud=true" in command
-    tower = Namespace(**{**vars(run), "task": "tower", "train_arg": []})  # make reference-tower: annealed
+    tower = Namespace(**{**vars(run), "task": "tower", "train_arg": []})  # make reference-tower: annealed from 2e-3
     command = hiveformer_run_command(tower, tmp_path / "train", tmp_path / "out")
     assert set(policy_flags(SEEN_RECIPE)) <= set(command) and "--policy.lr_schedule=cosine" in command
+    assert "--policy.optimizer_lr=0.002" in command
     assert "--policy.lr_schedule=cosine" not in hiveformer_run_command(run, tmp_path / "train", tmp_path / "out")
     unseen = Namespace(**{**vars(run), "unseen": True, "train_arg": []})  # windows and the 7-channel stem
     command = hiveformer_run_command(unseen, tmp_path / "train", tmp_path / "out")
@@ -143,7 +144,7 @@ def test_hiveformer_runs_validate_a_checkpoint_about_every_100_steps_by_default(
     assert default_curve(1001) == 7 and default_curve(2) == 1 and default_curve(150) == 1
 
 
-def test_make_reference_gives_its_one_button_variation_more_episodes_of_their_own_scenes(tmp_path):
+def test_seen_runs_give_their_one_colour_variation_more_episodes_of_their_own_scenes(tmp_path):
     import subprocess
 
     from demo_factory.tools.reference_run import (
@@ -154,8 +155,9 @@ def test_make_reference_gives_its_one_button_variation_more_episodes_of_their_ow
     )
 
     assert single_colour_variations("tower", ["46", "0", "1", "red"]) == ["46", "red"]  # green: one cube
-    assert parse_arguments([]).extra_episodes == EXTRA_EPISODES  # make reference: 205 (maroon), 100 in all
-    assert parse_arguments(["--task", "tower"]).extra_episodes == parse_arguments(["--unseen"]).extra_episodes == 0
+    assert parse_arguments([]).extra_episodes == EXTRA_EPISODES["push_buttons"] == 60  # 205 (maroon): 100 in all
+    assert parse_arguments(["--task", "tower"]).extra_episodes == EXTRA_EPISODES["tower"] == 80  # 46 (green): 160
+    assert parse_arguments(["--unseen"]).extra_episodes == 0
     assert extra_generation_command(parse_arguments(["--extra-episodes", "0"])) is None
     assert extra_generation_command(parse_arguments(["--variation", "24", "--variation", "2"])) is None
     args = parse_arguments(["--variation", "navy", "--variation", "205", "--variation", "2", "--extra-episodes", "2",
