@@ -318,9 +318,9 @@ def parse_arguments(argv=None) -> argparse.Namespace:
                         f"(default: 40; tower: {TOWER['episodes_per_variation']}; "
                         f"--unseen: {UNSEEN['episodes_per_variation']}; ACT: 50)")
     parser.add_argument("--extra-episodes", type=int, help="more training episodes of each seen variation of one "
-                        "colour (one button, one cube), with scene seeds of their own (default for HiveFormer runs without "
-                        f"--unseen: push_buttons {EXTRA_EPISODES['push_buttons']}, so that 205 has 100; tower "
-                        f"{EXTRA_EPISODES['tower']}, so that 46 has 160; else 0)")
+                        "colour (one button, one cube), with scene seeds of their own (default for HiveFormer "
+                        f"runs without --unseen: push_buttons {EXTRA_EPISODES['push_buttons']}, so that 205 has 100; "
+                        f"tower {EXTRA_EPISODES['tower']}, so that 46 has 160; else 0)")
     parser.add_argument("--test-episodes", type=int, help="episodes of test variations for the unseen splits "
                         "(default: 20; ACT: 0)")
     parser.add_argument("--image-size", type=int, default=REFERENCE_IMAGE_SIZE,
