@@ -68,15 +68,17 @@ def run(command: list, env: dict | None = None, timeout: int = 600, finished: st
 
 
 def stop_with_stacks(process: subprocess.Popen) -> None:
-    """SIGABRT to the process and every descendant (each prints its stacks), a minute to do so, then SIGKILL."""
+    """SIGABRT to the process and every descendant (each prints its stacks), then SIGKILL to any alive 30 s later.
+
+    One process at a time, so that stacks written to the shared stderr do not interleave, and parents first, so that
+    no launcher outlives a rank to react to its death (torchrun would SIGTERM the other ranks before they print).
+    """
     launcher = psutil.Process(process.pid)
-    processes = [*launcher.children(recursive=True), launcher]
-    for each in processes:
-        with contextlib.suppress(psutil.NoSuchProcess):
+    for each in [launcher, *launcher.children(recursive=True)]:
+        with contextlib.suppress(psutil.NoSuchProcess, psutil.TimeoutExpired):
             each.send_signal(signal.SIGABRT)
-    _, alive = psutil.wait_procs(processes, timeout=60)
-    for each in alive:
-        with contextlib.suppress(psutil.NoSuchProcess):
+            each.wait(timeout=30)
+        with contextlib.suppress(psutil.NoSuchProcess, psutil.TimeoutExpired):
             each.kill()
     process.wait()
 
