@@ -34,7 +34,7 @@ def test_unseen_reference_run_trains_on_paper_train_ids_and_curves_the_unseen_sp
     assert json.loads((checkpoint / "train_config.json").read_text())["seed"] == 3
     config = json.loads((checkpoint / "config.json").read_text())  # the unseen recipe, but for --train-arg's key
     assert config["stem_point_cloud"] is True and config["whole_episodes"] is True
-    assert config["instruction_position_embeddings"] is True
+    assert config["instruction_position_embeddings"] is True and config["optimizer_lr"] == 2e-3
     assert config["text_encoder"] == "minilm_words" and config["n_history"] == 10
     splits = summary["results"]["splits"]
     assert {"train", "test_unseen_synthetic", "test_unseen_corrupted", "test_unseen_human"} <= set(splits)
@@ -127,16 +127,18 @@ def test_make_reference_pins_its_recipe_and_train_arguments_replace_settings(tmp
     assert set(policy_flags(SEEN_RECIPE)) <= set(command) and "--policy.lr_schedule=cosine" in command
     assert "--policy.optimizer_lr=0.002" in command
     assert "--policy.lr_schedule=cosine" not in hiveformer_run_command(run, tmp_path / "train", tmp_path / "out")
-    unseen = Namespace(**{**vars(run), "unseen": True, "train_arg": []})  # windows and the 7-channel stem
+    unseen = Namespace(**{**vars(run), "unseen": True, "train_arg": []})  # windows, the 7-channel stem, 2e-3
     command = hiveformer_run_command(unseen, tmp_path / "train", tmp_path / "out")
     assert set(policy_flags(UNSEEN_RECIPE)) <= set(command) and "--policy.instruction_position_embeddings=false" not in command
+    assert "--policy.optimizer_lr=0.002" in command and "--policy.optimizer_lr=0.002" not in hiveformer_run_command(
+        run, tmp_path / "train", tmp_path / "out")  # make reference keeps the plugin's rate
 
 
 def test_hiveformer_runs_validate_a_checkpoint_about_every_100_steps_by_default():
     from demo_factory.tools.reference_run import default_curve, parse_arguments
 
     assert parse_arguments([]).curve == 15 and parse_arguments(["--steps", "1000"]).curve == 10
-    assert parse_arguments(["--unseen"]).curve == 5 and parse_arguments(["--policy", "act"]).curve == 1
+    assert parse_arguments(["--unseen"]).curve == 4 and parse_arguments(["--policy", "act"]).curve == 1
     assert parse_arguments(["--steps", "1500", "--curve", "3"]).curve == 3
     tower = parse_arguments(["--task", "tower"])  # make reference-tower: 80 episodes, 6000 steps, validated every 1200
     assert (tower.episodes_per_variation, tower.steps, tower.curve) == (80, 6000, 5)
@@ -176,29 +178,28 @@ def test_checkpoints_are_saved_at_every_curve_point_and_at_most_500_steps_apart(
     assert save_interval(2, 2) == 1 and save_interval(1001, 1) == 143
 
 
-def test_unseen_runs_take_the_cover_or_the_train_ids_asked_and_say_which_test_ones_they_cannot_compose():
+def test_unseen_runs_take_the_paper_train_ids_asked_and_say_which_test_ones_they_cannot_compose():
     from demo_factory.tools.reference_run import (
-        UNSEEN_VARIATIONS,
         composability_note,
         parse_arguments,
         pressed_colours,
         uncomposable_test_variations,
     )
 
-    default = parse_arguments(["--unseen"])
-    assert default.variations == list(UNSEEN_VARIATIONS) and (default.steps, default.text_encoder) == (4500, "minilm_words")
+    default = parse_arguments(["--unseen"])  # every paper train id, 6 episodes each
+    assert default.variations == [str(i) for i in range(100)] and default.episodes_per_variation == 6
+    assert (default.steps, default.text_encoder) == (8000, "minilm_words")
     assert parse_arguments(["--unseen", "--train-variations", "3"]).variations == ["0", "1", "2"]
     named = parse_arguments(["--unseen", "--variation", "0", "--variation", "2"])
     assert named.variations == ["0", "2"] and named.train_variations is None
     assert pressed_colours(["0", "8"]) == {(0, "green"), (1, "rose"), (2, "black"), (0, "orange"), (1, "navy")}
     # A test variation is composable when each of its colours was pressed at the same place in training. The
-    # first 20 train ids leave 68 of the 100 test variations; all 100, and the README's 20-id cover, the 9 that
-    # name azure second (no train variation does).
+    # first 20 train ids leave 68 of the 100 test variations; all 100 the 9 that name azure second (no train
+    # variation does).
     first_20 = [str(i) for i in range(20)]
     assert len(uncomposable_test_variations(first_20)) == 68
-    for train in (range(100), UNSEEN_VARIATIONS):
-        left = uncomposable_test_variations([str(i) for i in train])
-        assert len(left) == 9 and pressed_colours(left) - pressed_colours(train) == {(1, "azure")}
+    left = uncomposable_test_variations(default.variations)
+    assert len(left) == 9 and pressed_colours(left) - pressed_colours(default.variations) == {(1, "azure")}
     note = composability_note(first_20)
     assert note.startswith("note: 68 of the 100 test variations") and "azure second" in note and "third" in note
     assert composability_note([str(i) for i in range(100, 200)]) is None  # (test ids: every press is made)
