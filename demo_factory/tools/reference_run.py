@@ -382,7 +382,8 @@ def parse_arguments(argv=None) -> argparse.Namespace:
     args.variations = args.variation or list(PRESETS[args.policy]["variations"] if args.policy != "hiveformer"
                                              else TASK_VARIATIONS[args.task])
     if args.unseen and not args.variation:
-        args.variations = [str(i) for i in range(args.train_variations or 100)]
+        paper_train_ids = [str(v.id) for v in get_task("push_buttons").split_variations("train")]  # 0-99
+        args.variations = paper_train_ids[:args.train_variations]
     return args
 
 
