@@ -121,6 +121,11 @@ def test_kept_rows_give_the_stock_items_and_spare_the_decoding(tiny_dataset_root
         assert_same_items(stock[index], dataset[index])
     (kept,) = reader.__dict__["_decoded_row_caches"][1].values()
     assert sorted(kept) == list(range(len(dataset)))  # every row, decoded once
+    # kept in the PNGs' bits: 8-bit colour, 16-bit depth; the other values as decoded
+    dtypes = {key.split(".")[1] if key.startswith("observation.") else key: value.dtype
+              for key, value in kept[0].items()}
+    assert dtypes["images"] == torch.uint8 and dtypes["depth"] == torch.uint16
+    assert dtypes["calibration"] == dtypes["state"] == torch.float32
     with monkeypatch.context() as patch:
         patch.setattr(type(reader), "_columns_view", lambda *_: pytest.fail("decoded a kept row again"))
         for index in range(len(dataset)):
