@@ -122,8 +122,8 @@ def test_kept_rows_give_the_stock_items_and_spare_the_decoding(tiny_dataset_root
     (kept,) = reader.__dict__["_decoded_row_caches"][1].values()
     assert sorted(kept) == list(range(len(dataset)))  # every row, decoded once
     # kept in the PNGs' bits: 8-bit colour, 16-bit depth; the other values as decoded
-    dtypes = {key.split(".")[1] if key.startswith("observation.") else key: value.dtype
-              for key, value in kept[0].items()}
+    dtypes = {key.split(".")[1] if key.startswith("observation.") else key: stored.dtype
+              for key, (stored, _) in kept[0].items()}
     assert dtypes["images"] == torch.uint8 and dtypes["depth"] == torch.uint16
     assert dtypes["calibration"] == dtypes["state"] == torch.float32
     with monkeypatch.context() as patch:
@@ -131,7 +131,7 @@ def test_kept_rows_give_the_stock_items_and_spare_the_decoding(tiny_dataset_root
         for index in range(len(dataset)):
             assert_same_items(stock[index], dataset[index])
 
-    row_bytes = sum(value.nbytes for value in kept[0].values())
+    row_bytes = sum(stored.nbytes for stored, _ in kept[0].values())
     small = factory.make_dataset(training_config(tiny_dataset_root, config))
     small.reader.cache_bytes = 3 * row_bytes
     for index in reversed(range(len(small))):
@@ -200,3 +200,18 @@ def test_image_transforms_leave_native_depth_alone(tiny_dataset_root):
         rgb, depth = f"observation.images.{camera}", f"observation.depth.{camera}"
         assert torch.equal(augmented[rgb], 1.0 - plain[rgb])
         assert torch.equal(augmented[depth], plain[depth])
+
+
+def test_kept_values_come_back_exactly_in_their_own_dtype():
+    """`compact` keeps 8-bit colour as uint8 and integer millimetres as uint16, anything else as it is, and
+    `expand` gives back the decoded value bit for bit, leaving values that were not compacted alone."""
+    colour = torch.arange(256, dtype=torch.float32).div(255).view(1, 16, 16)
+    depth = torch.tensor([[0.0, 612.0], [65535.0, 1.0]])
+    fractional = torch.tensor([[0.3, 0.5]])
+    raw_bytes = torch.tensor([[3, 200]], dtype=torch.uint8)
+    for value, dtype in ((colour, torch.uint8), (depth, torch.uint16), (fractional, torch.float32),
+                         (raw_bytes, torch.uint8)):
+        stored = dataset_reading.compact(value)
+        assert stored.dtype == dtype
+        restored = dataset_reading.expand(stored, value.dtype)
+        assert restored.dtype == value.dtype and torch.equal(restored, value)

@@ -68,12 +68,12 @@ class HistoryOnceReader(DatasetReader):
         for row, values in fresh.items():
             if self.__dict__["_cached_bytes"] >= self.cache_bytes:
                 break
-            kept = {key: compact(value) for key, value in values.items()}
-            size = sum(stored.nbytes for stored in kept.values())
+            kept = {key: (compact(value), value.dtype) for key, value in values.items()}
+            size = sum(stored.nbytes for stored, _ in kept.values())
             if self.__dict__["_cached_bytes"] + size <= self.cache_bytes:
                 cache[row] = kept
                 self.__dict__["_cached_bytes"] += size
-        value = {row: fresh.get(row) or {key: expand(stored) for key, stored in cache[row].items()} for row in rows}
+        value = {row: fresh.get(row) or {key: expand(*kept) for key, kept in cache[row].items()} for row in rows}
         return {key: torch.stack([value[row][key] for row in relative[key]]) for key in keys}
 
     def _decoded_rows(self, keys: tuple[str, ...]) -> dict[int, dict]:
@@ -110,14 +110,16 @@ def compact(value: torch.Tensor) -> torch.Tensor:
     for dtype, scale in ((torch.uint8, 255.0), (torch.uint16, 1.0)):
         if low >= 0 and high * scale <= torch.iinfo(dtype).max:
             stored = (value * scale).round_().to(dtype)
-            if torch.equal(expand(stored), value):
+            if torch.equal(expand(stored, value.dtype), value):
                 return stored
     return value
 
 
-def expand(stored: torch.Tensor) -> torch.Tensor:
-    """The float32 value that `compact` kept as `stored`; `stored` itself when it kept it as it was.
-    uint8 is divided by 255 as torchvision's `to_tensor` does (LeRobot's image decoding)."""
+def expand(stored: torch.Tensor, dtype: torch.dtype) -> torch.Tensor:
+    """The value of dtype `dtype` that `compact` kept as `stored` (itself when kept as it was). uint8 is
+    divided by 255 as torchvision's `to_tensor` does (LeRobot's image decoding)."""
+    if stored.dtype == dtype:
+        return stored
     if stored.dtype == torch.uint8:
         return stored.to(torch.float32).div(255)
     if stored.dtype == torch.uint16:
