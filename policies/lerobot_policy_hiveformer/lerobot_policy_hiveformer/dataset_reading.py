@@ -120,11 +120,8 @@ def expand(stored: torch.Tensor, dtype: torch.dtype) -> torch.Tensor:
     divided by 255 as torchvision's `to_tensor` does (LeRobot's image decoding)."""
     if stored.dtype == dtype:
         return stored
-    if stored.dtype == torch.uint8:
-        return stored.to(torch.float32).div(255)
-    if stored.dtype == torch.uint16:
-        return stored.to(torch.float32)
-    return stored
+    restored = stored.to(dtype)
+    return restored.div(255) if stored.dtype == torch.uint8 else restored
 
 
 class TrainingReader(HistoryOnceReader):
