@@ -294,6 +294,7 @@ def test_save_and_load_give_identical_outputs(tiny_dataset_root, tmp_path):
         {"instruction_position_embeddings": False},
         {"stem_point_cloud": True},
         {"instruction_layers": 1},
+        {"instruction_feature_norm": True},
     ],
 )
 def test_ablations_train_and_act(tiny_dataset_root, ablation):
@@ -350,6 +351,26 @@ def test_instruction_layers_give_each_token_the_words_before_it_only(tiny_datase
     assert torch.allclose(plain[0, :-1], late[0, :-1], atol=1e-6)
     assert not torch.allclose(plain[0, -1], late[0, -1], atol=1e-4)
     assert all(not torch.allclose(plain[0, i], early[0, i], atol=1e-4) for i in range(1, 6))
+
+
+def test_instruction_feature_norm_projects_each_token_standardised(tiny_dataset_root):
+    """With instruction_feature_norm each token's features are standardised before their projection: scaling or
+    shifting them changes nothing, and features as small as minilm_words' (~0.06) weigh as much as unit ones.
+    Padding tokens (all zeros) stay zeros."""
+    model = make_tiny_policy(tiny_dataset_root, instruction_feature_norm=True).eval().model
+    projection = model.instruction_to_token
+    features = 0.06 * torch.randn(1, 5, projection.in_features)
+    features[0, -1] = 0.0  # padding
+    positions = model.instruction_position_embedding.weight[:5]
+    with torch.no_grad():
+        tokens, rescaled = model.instruction_tokens(features), model.instruction_tokens(10 * features + 0.5)
+        variance = features.var(-1, unbiased=False, keepdim=True)
+        standardised = (features - features.mean(-1, keepdim=True)) / (variance + 1e-5).sqrt()  # layer_norm's eps
+        assert torch.allclose(tokens[0, :-1], (projection(standardised) + positions)[0, :-1], atol=1e-5)
+        assert torch.allclose(tokens[0, -1], projection.bias + positions[-1])
+        assert torch.allclose(tokens, rescaled, rtol=1e-2, atol=1e-2)  # equal but for eps against the variance
+        content, raw_content = (tokens - positions - projection.bias), (projection(features) - projection.bias)
+        assert content[0, :-1].std() > 10 * raw_content[0, :-1].std()
 
 
 def test_n_history_defaults_to_the_longest_episode_of_the_dataset(tiny_dataset_root):

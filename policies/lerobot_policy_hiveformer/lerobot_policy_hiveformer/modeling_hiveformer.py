@@ -904,6 +904,8 @@ class HiveformerModel(nn.Module):
 
     def instruction_tokens(self, instruction: Tensor) -> Tensor:
         """Instruction features (B, L, F) -> the tokens the steps attend to (B, L, D)."""
+        if self.config.instruction_feature_norm:  # padding tokens (all zeros) stay zeros
+            instruction = F.layer_norm(instruction, instruction.shape[-1:])
         tokens = self.instruction_to_token(instruction)
         length = tokens.shape[1]
         if self.config.instruction_position_embeddings:
