@@ -127,9 +127,10 @@ def test_make_reference_pins_its_recipe_and_train_arguments_replace_settings(tmp
     assert set(policy_flags(SEEN_RECIPE)) <= set(command) and "--policy.lr_schedule=cosine" in command
     assert "--policy.optimizer_lr=0.002" in command
     assert "--policy.lr_schedule=cosine" not in hiveformer_run_command(run, tmp_path / "train", tmp_path / "out")
-    unseen = Namespace(**{**vars(run), "unseen": True, "train_arg": []})  # windows, the 7-channel stem, 2e-3
+    unseen = Namespace(**{**vars(run), "unseen": True, "train_arg": []})  # windows, the authors' 4-channel stem, 2e-3
     command = hiveformer_run_command(unseen, tmp_path / "train", tmp_path / "out")
     assert set(policy_flags(UNSEEN_RECIPE)) <= set(command) and "--policy.instruction_position_embeddings=false" not in command
+    assert "--policy.stem_point_cloud=false" in command and "--policy.stem_point_cloud=true" not in command
     assert "--policy.optimizer_lr=0.002" in command and "--policy.optimizer_lr=0.002" not in hiveformer_run_command(
         run, tmp_path / "train", tmp_path / "out")  # make reference keeps the plugin's rate
 
