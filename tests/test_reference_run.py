@@ -33,7 +33,7 @@ def test_unseen_reference_run_trains_on_paper_train_ids_and_curves_the_unseen_sp
     checkpoint = out / "train" / "checkpoints" / "last" / "pretrained_model"
     assert json.loads((checkpoint / "train_config.json").read_text())["seed"] == 3
     config = json.loads((checkpoint / "config.json").read_text())  # the unseen recipe, but for --train-arg's key
-    assert config["stem_point_cloud"] is True and config["whole_episodes"] is True
+    assert config["stem_point_cloud"] is False and config["whole_episodes"] is True
     assert config["instruction_position_embeddings"] is True and config["optimizer_lr"] == 2e-3
     assert config["text_encoder"] == "minilm_words" and config["n_history"] == 10
     splits = summary["results"]["splits"]
