@@ -20,8 +20,8 @@ where it stopped; the training itself resumes from its last checkpoint (`lerobot
 at least every 500 steps).
 With `--unseen` the run is built to show instructions followed that were never seen: the paper's train
 variations 0-99 (6 episodes each), pretrained MiniLM's context-free word-piece instruction features, windows
-as `make reference` with the authors' 4-channel CNN stem, the test episodes on the paper's test variations that the authors'
-human-written sentences name, and a learning curve of both the seen and the unseen-synthetic success.
+as `make reference` with the authors' 4-channel CNN stem, the test episodes on the paper's test variations that
+the authors' human-written sentences name, and a learning curve of both the seen and the unseen-synthetic success.
 At the end it prints the results table (also `OUT/eval/results.md`, `results.json`, `results.png`)
 and writes `OUT/reference_run.json` (configuration, stage wall times, success rates) and, with a
 learning curve, prints it and plots it to `OUT/learning_curve.png`.
