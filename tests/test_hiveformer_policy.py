@@ -31,7 +31,6 @@ from lerobot_policy_hiveformer.modeling_hiveformer import (
     keyframe_observations,
     project_to_pixels,
     quaternion_loss,
-    random_rescale,
     conv_block_of_concatenation,
     supervised_steps,
     tiny_random_clip_text_model,
@@ -484,13 +483,14 @@ def test_the_position_offset_starts_at_zero(tiny_dataset_root):
     assert torch.allclose(prediction.position, attended, atol=1e-6)
 
 
-def test_random_rescale_moves_colour_points_and_mark_together(tiny_dataset_root):
+def test_rescaling_moves_colour_points_and_mark_together(tiny_dataset_root):
     config, _ = tiny_config(tiny_dataset_root)
-    obs = keyframe_observations(history_batch(tiny_dataset_root, config, [5]), config)
-    assert torch.equal(random_rescale(obs, 1.0, 1.0).points, obs.points)
+    batch = history_batch(tiny_dataset_root, config, [5])
+    obs = keyframe_observations(batch, config)
+    assert torch.equal(keyframe_observations(batch, config, rescale=(1.0, 1.0)).points, obs.points)
     torch.manual_seed(3)
     for scale in (0.75, 1.25):
-        out = random_rescale(obs, scale, scale)
+        out = keyframe_observations(batch, config, rescale=(scale, scale))
         assert out.rgb.shape == obs.rgb.shape and out.mark.shape == obs.mark.shape
         # Every output pixel is one input pixel: its colour, point and validity travel together.
         before = torch.cat([obs.rgb, obs.points, obs.valid_pixels.unsqueeze(2).float()], 2)
@@ -527,39 +527,34 @@ def test_dropout_zeroes_a_fraction_p_and_scales_the_rest():
     assert torch.equal(dropout.eval()(x), x)
 
 
-@pytest.mark.parametrize("padded", [False, True])
-def test_random_rescale_is_nearest_resize_reflection_pad_and_crop(padded):
-    """The one-gather augmentation equals the authors' steps done one by one with PyTorch, random draws
-    included; with pixel maps for some steps only (training leaves out padding), the kept steps get the same."""
-    batch, steps, cameras, height, width = 3, 2, 2, 16, 12
-    lead = (batch, steps, cameras)
-    full = KeyframeObservations(
-        rgb=torch.rand(*lead, 3, height, width), points=torch.randn(*lead, 3, height, width),
-        valid_pixels=torch.rand(*lead, height, width) > 0.3, mark=torch.rand(*lead, 1, height, width),
-        calibration=torch.zeros(*lead, 20), gripper=torch.zeros(batch, steps, 8),
-        step_valid=torch.ones(batch, steps, dtype=torch.bool), pixel_steps=torch.ones(batch, steps, dtype=torch.bool),
-        instructions=["x"] * batch)
-    kept = torch.tensor([[False, True], [True, True], [False, True]]) if padded else full.pixel_steps
-    obs = KeyframeObservations(**{
-        **{field.name: getattr(full, field.name) for field in dataclasses.fields(full)},
-        **{name: getattr(full, name)[kept] for name in ("rgb", "points", "valid_pixels", "mark")},
-        "pixel_steps": kept, "step_valid": kept})
+def test_rescaled_maps_are_the_cameras_resized_padded_and_cropped(tiny_dataset_root):
+    """Colour and depth resampled, and the point cloud and mark built from the resampled depth, equal the
+    authors' steps done one by one with PyTorch on the camera's maps, random draws included; for windows with
+    padding, whose padding steps get no maps, too."""
+    config, _ = tiny_config(tiny_dataset_root)
+    batch = history_batch(tiny_dataset_root, config, [EPISODE_STARTS[1] + 1, 7, EPISODE_STARTS[2] - 1])
+    keep = supervised_steps(batch)
+    plain = keyframe_observations(batch, config, keep=keep)
+    assert not plain.pixel_steps.all()  # some padding steps are left out
+    height, width = plain.rgb.shape[-2:]
+    maps = torch.cat([plain.rgb, plain.points, plain.valid_pixels.unsqueeze(2).float(), plain.mark], dim=2)
+    sample_of_row = plain.pixel_steps.nonzero()[:, 0]
     for seed, (low, high) in enumerate([(0.75, 1.25), (0.55, 0.8), (1.3, 2.0), (1.0, 1.0)]):
         torch.manual_seed(seed)
-        out = random_rescale(obs, low, high)
-        got = torch.zeros(batch, steps, cameras, 8, height, width)
-        got[kept] = torch.cat([out.rgb, out.points, out.valid_pixels.unsqueeze(2).float(), out.mark], dim=2)
+        out = keyframe_observations(batch, config, keep=keep, rescale=(low, high))
+        got = torch.cat([out.rgb, out.points, out.valid_pixels.unsqueeze(2).float(), out.mark], dim=2)
         torch.manual_seed(seed)
-        for sample in range(batch):
+        for sample in range(keep.shape[0]):
             scale = float(torch.empty(()).uniform_(low, high))
             size = (max(int(height * scale), 1), max(int(width * scale), 1))
-            maps = torch.cat([full.rgb, full.points, full.valid_pixels.unsqueeze(3).float(), full.mark], dim=3)[sample]
-            x = torch.nn.functional.interpolate(maps.flatten(0, 1), size=size, mode="nearest")
+            rows = maps[sample_of_row == sample]  # (steps, C, 8, H, W)
+            x = torch.nn.functional.interpolate(rows.flatten(0, 1), size=size, mode="nearest")
             x = torch.nn.functional.pad(x, (0, max(width - size[1], 0), 0, max(height - size[0], 0)), mode="reflect")
             top = int(torch.randint(0, x.shape[-2] - height + 1, ()))
             left = int(torch.randint(0, x.shape[-1] - width + 1, ()))
-            expected = x[..., top : top + height, left : left + width].unflatten(0, (steps, cameras))
-            assert torch.equal(got[sample][kept[sample]], expected[kept[sample]]), (seed, sample)
+            expected = x[..., top : top + height, left : left + width].unflatten(0, rows.shape[:2])
+            assert torch.equal(got[sample_of_row == sample], expected), (seed, sample)
+        assert out.mark.sum() > 0  # the gripper is seen
 
 
 @pytest.mark.parametrize("shape", [(6, 16, 64, 64), (40, 16, 8, 8), (2, 16, 4, 4)])

@@ -40,18 +40,21 @@ CHANNELS_LAST_GROUP_NORM_MIN_SIZE = 2**16
 # --- Geometry: pure functions ----------------------------------------------------------------------
 
 
-def depth_to_world_points(depth_m: Tensor, calibration: Tensor) -> Tensor:
+def depth_to_world_points(depth_m: Tensor, calibration: Tensor, columns: Tensor | None = None,
+                          rows: Tensor | None = None) -> Tensor:
     """World-frame point of every pixel (OpenCV camera axes, pixel centres at integer coordinates).
 
     depth_m: (..., H, W) metres; calibration: (..., 20) = [fx, fy, cx, cy, world-from-camera 4x4 row-major].
+    `columns` and `rows`, broadcastable to (..., 1, 1, W) and (..., 1, H, 1), are the image coordinates each
+    depth was seen at (default 0..W-1 and 0..H-1), for a depth map resampled from the camera's.
     Returns (..., 3, H, W).
     """
     height, width = depth_m.shape[-2:]
     fx, fy, cx, cy = (calibration[..., i, None, None, None] for i in range(4))  # (..., 1, 1, 1)
     world_from_camera = calibration[..., 4:].reshape(*calibration.shape[:-1], 4, 4)
     rotation = world_from_camera[..., :3, :3, None, None]  # (..., 3, 3, 1, 1)
-    u = torch.arange(width, device=depth_m.device, dtype=depth_m.dtype)
-    v = torch.arange(height, device=depth_m.device, dtype=depth_m.dtype)[:, None]
+    u = torch.arange(width, device=depth_m.device, dtype=depth_m.dtype) if columns is None else columns
+    v = torch.arange(height, device=depth_m.device, dtype=depth_m.dtype)[:, None] if rows is None else rows
     # world = R [(u - cx) d / fx, (v - cy) d / fy, d] + t = d * ray + t, with the pixel's ray built from a row
     # and a column term: two passes over the (..., 3, H, W) maps instead of one per coordinate and product.
     row_term = rotation[..., 1, :, :] * ((v - cy) / fy) + rotation[..., 2, :, :]  # (..., 3, H, 1)
@@ -76,17 +79,22 @@ def project_to_pixels(points: Tensor, calibration: Tensor) -> tuple[Tensor, Tens
     return torch.stack([u, v], dim=-1), in_front
 
 
-def gripper_mark(gripper_xyz: Tensor, calibration: Tensor, height: int, width: int) -> Tensor:
+def gripper_mark(gripper_xyz: Tensor, calibration: Tensor, height: int, width: int,
+                 source: Tensor | None = None) -> Tensor:
     """1 at the pixel where the gripper projects into each camera, as in the authors' code; all zeros when
     it projects outside the image or lies behind the camera.
 
-    gripper_xyz: (..., 3); calibration: (..., 20). Returns (..., 1, H, W).
+    gripper_xyz: (..., 3); calibration: (..., 20). With `source`, broadcastable to (..., H*W), the camera
+    pixel (row * W + column) each pixel of a resampled map comes from: 1 wherever that is the gripper's.
+    Returns (..., 1, H, W).
     """
     uv, in_front = project_to_pixels(gripper_xyz, calibration)
     u, v = torch.round(uv).long().unbind(-1)
     inside = in_front & (u >= 0) & (u < width) & (v >= 0) & (v < height)
-    mark = torch.zeros(*u.shape, height * width, dtype=uv.dtype, device=uv.device)
     pixel = (v.clamp(0, height - 1) * width + u.clamp(0, width - 1)).unsqueeze(-1)
+    if source is not None:
+        return ((source == pixel) & inside.unsqueeze(-1)).to(uv.dtype).view(*u.shape, 1, height, width)
+    mark = torch.zeros(*u.shape, height * width, dtype=uv.dtype, device=uv.device)
     mark.scatter_(-1, pixel, inside.unsqueeze(-1).to(uv.dtype))
     return mark.view(*u.shape, 1, height, width)
 
@@ -125,11 +133,15 @@ class KeyframeObservations:
         return x if torch.equal(steps, self.pixel_steps) else x[steps[self.pixel_steps]]
 
 
-def keyframe_observations(batch: dict, config: HiveformerConfig, keep: Tensor | None = None) -> KeyframeObservations:
+def keyframe_observations(batch: dict, config: HiveformerConfig, keep: Tensor | None = None,
+                          rescale: tuple[float, float] | None = None) -> KeyframeObservations:
     """Gather the policy's inputs from a LeRobot batch, with history (B, T, ...) or without (B, ...).
 
     The pixel maps (colour, point cloud, gripper mark) are built for the real steps and those where `keep`
-    (B, T) is True, or for every step without `keep`.
+    (B, T) is True, or for every step without `keep`. With `rescale` (min_scale, max_scale), each sample's
+    maps are augmented as `random_rescale_sources` draws: colour and depth are resampled, and the point cloud
+    and the mark are built from the resampled depth at the camera pixels it came from, the same values as
+    resampling the camera's point cloud and mark, in two gathers instead of four.
     """
     cameras = config.camera_names
     first_image = batch[IMAGES_PREFIX + cameras[0]]
@@ -153,13 +165,21 @@ def keyframe_observations(batch: dict, config: HiveformerConfig, keep: Tensor | 
     pixel_calibration = take_steps(calibration, pixel_steps)  # (M, C, 20)
     rgb = per_camera(IMAGES_PREFIX)
     # LeRobot's native depth: (.., 1, H, W) millimetres, 0 = no hit.
-    depth_mm = per_camera(DEPTH_PREFIX)[..., 0, :, :].float()
-    valid_pixels = depth_mm > 0
-    points = depth_to_world_points(depth_mm / 1000.0, pixel_calibration) * valid_pixels.unsqueeze(-3)
-    gripper = with_time(batch[OBS_STATE])[..., :GRIPPER_STATE_DIM].float()
+    depth_mm = per_camera(DEPTH_PREFIX)
     height, width = rgb.shape[-2:]
+    rows = columns = source = None
+    if rescale is not None:
+        rows, columns = random_rescale_sources(pixel_steps, height, width, *rescale)  # (M, H), (M, W)
+        source = (rows[:, :, None] * width + columns[:, None, :]).view(-1, 1, height * width)  # (M, 1, H*W)
+        rgb, depth_mm = resample(rgb, source), resample(depth_mm, source)
+        rows = rows[:, None, None, :, None].to(depth_mm.dtype)  # as depth_to_world_points broadcasts them
+        columns = columns[:, None, None, None, :].to(depth_mm.dtype)
+    depth_mm = depth_mm[..., 0, :, :].float()
+    valid_pixels = depth_mm > 0
+    points = depth_to_world_points(depth_mm / 1000.0, pixel_calibration, columns, rows) * valid_pixels.unsqueeze(-3)
+    gripper = with_time(batch[OBS_STATE])[..., :GRIPPER_STATE_DIM].float()
     gripper_xyz = take_steps(gripper, pixel_steps)[:, None, :3].expand_as(pixel_calibration[..., :3])
-    mark = gripper_mark(gripper_xyz, pixel_calibration, height, width)
+    mark = gripper_mark(gripper_xyz, pixel_calibration, height, width, source)
 
     instructions = batch.get("task")
     if instructions is None:
@@ -179,58 +199,51 @@ def keyframe_observations(batch: dict, config: HiveformerConfig, keep: Tensor | 
     )
 
 
-def random_rescale(obs: KeyframeObservations, min_scale: float, max_scale: float) -> KeyframeObservations:
-    """The authors' training augmentation: per sample, one random scale for all its steps and cameras;
-    RGB, point cloud, valid-pixel mask and gripper mark are resized together (nearest neighbour), padded
-    by reflection when smaller, then cropped back to (H, W) at a random offset.
+def random_rescale_sources(pixel_steps: Tensor, height: int, width: int, min_scale: float,
+                           max_scale: float) -> tuple[Tensor, Tensor]:
+    """The authors' training augmentation, as the camera pixel each output pixel comes from: per sample, one
+    random scale for all its steps and cameras; the maps are resized (nearest neighbour), padded by reflection
+    when smaller, then cropped back to (H, W) at a random offset.
 
-    Each output pixel is one input pixel, so the whole augmentation is one gather per map with the
-    sample's source pixel for each output pixel (`rescale_source_pixels`): the same values as
-    `F.interpolate(mode="nearest")`, `F.pad(mode="reflect")` and a crop, in one pass instead of four.
+    Returns the source row of each output row (M, H) and column of each output column (M, W) for the M steps
+    where `pixel_steps` (B, T) is True, packed (sample, step). Each output pixel is one input pixel, so
+    resampling a map there gives the values of `F.interpolate(mode="nearest")`, `F.pad(mode="reflect")` and a
+    crop, in one pass instead of three.
     """
-    batch = obs.pixel_steps.shape[0]
-    height, width = obs.rgb.shape[-2:]
-    sources = []
-    for _ in range(batch):
+    sizes, offsets = [], []
+    for _ in range(pixel_steps.shape[0]):
         scale = float(torch.empty(()).uniform_(min_scale, max_scale))
         size = (max(int(height * scale), 1), max(int(width * scale), 1))
         top = int(torch.randint(0, max(size[0], height) - height + 1, ()))
         left = int(torch.randint(0, max(size[1], width) - width + 1, ()))
-        rows = rescale_source_pixels(height, size[0], top)
-        cols = rescale_source_pixels(width, size[1], left)
-        sources.append(rows[:, None] * width + cols[None, :])
-    sample_of_row = obs.pixel_steps.nonzero()[:, 0]  # (M,): the pixel maps' rows are packed (sample, step)
-    index = torch.stack(sources)[sample_of_row].view(-1, 1, 1, height * width).to(obs.rgb.device)
-
-    def gather(x: Tensor) -> Tensor:  # (M, C, k, H, W); gather with an expanded index beats take_along_dim
-        flat = x.flatten(-2)
-        return torch.gather(flat, -1, index.expand(flat.shape)).unflatten(-1, (height, width))
-
-    return KeyframeObservations(
-        rgb=gather(obs.rgb),
-        points=gather(obs.points),
-        valid_pixels=gather(obs.valid_pixels.unsqueeze(2)).squeeze(2),
-        mark=gather(obs.mark),
-        calibration=obs.calibration,
-        gripper=obs.gripper,
-        step_valid=obs.step_valid,
-        pixel_steps=obs.pixel_steps,
-        instructions=obs.instructions,
-    )
+        sizes.append(size)
+        offsets.append((top, left))
+    sizes, offsets = torch.tensor(sizes), torch.tensor(offsets)  # (B, 2)
+    rows = rescale_source_pixels(height, sizes[:, 0], offsets[:, 0]).to(pixel_steps.device)  # (B, H)
+    columns = rescale_source_pixels(width, sizes[:, 1], offsets[:, 1]).to(pixel_steps.device)  # (B, W)
+    sample_of_row = pixel_steps.nonzero()[:, 0]  # (M,)
+    return rows[sample_of_row], columns[sample_of_row]
 
 
-def rescale_source_pixels(length: int, size: int, offset: int) -> Tensor:
+def rescale_source_pixels(length: int, size: Tensor, offset: Tensor) -> Tensor:
     """For each of `length` output pixels along one axis, its input pixel after a nearest-neighbour resize
-    of the axis to `size`, reflection padding back to `length` when smaller and a crop from `offset`."""
-    position = torch.arange(offset, offset + length)
-    period = max(2 * (size - 1), 1)  # reflection, the edge pixel not repeated (as F.pad's "reflect")
+    of the axis to `size`, reflection padding back to `length` when smaller and a crop from `offset`; one row
+    per sample of `size` and `offset` (B,) -> (B, length)."""
+    size = size[:, None]
+    position = torch.arange(length) + offset[:, None]
+    period = (2 * (size - 1)).clamp_min(1)  # reflection, the edge pixel not repeated (as F.pad's "reflect")
     position = position % period
     position = torch.where(position < size, position, period - position)
-    if size == length:
-        return position
-    # PyTorch's nearest rule: floor(out * in / out_size) computed in float32, clamped to the last pixel.
-    scale = torch.tensor(length / size, dtype=torch.float32)
+    # PyTorch's nearest rule: floor(out * in / out_size) computed in float32, clamped to the last pixel (an
+    # unscaled axis keeps its positions: the factor is 1).
+    scale = (length / size.double()).float()
     return (position.float() * scale).floor().long().clamp_max(length - 1)
+
+
+def resample(x: Tensor, source: Tensor) -> Tensor:
+    """Pixel maps x (M, C, k, H, W) taken at the flat pixels `source` (M, 1, H*W) of each row."""
+    flat = x.flatten(-2)  # a gather with an expanded index beats take_along_dim
+    return torch.gather(flat, -1, source.unsqueeze(1).expand(flat.shape)).view(x.shape)
 
 
 def take_steps(x: Tensor, steps: Tensor, leading_dims: int = 2) -> Tensor:
@@ -1098,10 +1111,10 @@ class HiveformerPolicy(PreTrainedPolicy):
         """Teacher-forced losses over every non-padded step of the history window."""
         supervised = supervised_steps(batch)  # (B, T)
         target = window_targets(batch)  # (B, T, 8)
-        obs = keyframe_observations(batch, self.config, keep=supervised)  # no pixel maps for padding steps
         config = self.config
-        if self.training and (config.augmentation_min_scale, config.augmentation_max_scale) != (1.0, 1.0):
-            obs = random_rescale(obs, config.augmentation_min_scale, config.augmentation_max_scale)
+        scales = (config.augmentation_min_scale, config.augmentation_max_scale)
+        rescale = scales if self.training and scales != (1.0, 1.0) else None
+        obs = keyframe_observations(batch, config, keep=supervised, rescale=rescale)  # no maps for padding steps
         instruction, instruction_mask = self._encode_instructions(obs.instructions, obs.rgb.device)
         # The heads run on the supervised steps only: (M, ...) predictions for M supervised steps.
         prediction = self.model(obs, instruction, instruction_mask, decode=supervised)
