@@ -125,26 +125,24 @@ def test_later_steps_do_not_change_earlier_predictions(tiny_dataset_root):
 
 @pytest.mark.parametrize("masked", [False, True])
 def test_attention_padded_to_the_fast_head_dimension_gives_the_same_outputs(monkeypatch, masked):
-    """On CPU, heads narrower than 16 are zero-padded for PyTorch's fused kernel; the outputs and the
-    gradients must be the unpadded attention's (the paper's 64 wide, 8 heads: head dimension 8)."""
+    """On CPU, heads narrower than 16 are zero-padded for PyTorch's fused kernel where no gradient is taken
+    (rollouts); the outputs must be the unpadded attention's (the paper's 64 wide, 8 heads: head dimension 8).
+    Training, where the padding costs more than it saves, keeps the heads as they are."""
     torch.manual_seed(0)
     attention = MultiHeadAttention(dim=64, num_heads=8, dropout=0.0)
     queries, keys = torch.randn(2, 30, 64), torch.randn(2, 90, 64)
     allowed = torch.rand(2, 1, 30, 90) > 0.3 if masked else None
     if masked:
         allowed[..., 0] = True  # every query sees at least one key
-
-    def outputs_and_gradients():
-        q, k = queries.clone().requires_grad_(), keys.clone().requires_grad_()
-        out = attention(q, k, allowed)
-        (out * torch.linspace(-1, 1, out.numel()).view_as(out)).sum().backward()
-        return out.detach(), q.grad, k.grad
-
-    padded = outputs_and_gradients()
-    monkeypatch.setattr(modeling_hiveformer, "FUSED_CPU_MIN_HEAD_DIM", 0)
-    plain = outputs_and_gradients()
-    for with_padding, without in zip(padded, plain, strict=True):
-        assert torch.allclose(with_padding, without, atol=1e-6)
+    with torch.no_grad():
+        assert attention._heads(attention.query(queries)).shape[-1] == 16
+        padded = attention(queries, keys, allowed)
+        monkeypatch.setattr(modeling_hiveformer, "FUSED_CPU_MIN_HEAD_DIM", 0)
+        assert attention._heads(attention.query(queries)).shape[-1] == 8
+        plain = attention(queries, keys, allowed)
+    assert torch.allclose(padded, plain, atol=1e-6)
+    monkeypatch.undo()
+    assert attention._heads(attention.query(queries.requires_grad_())).shape[-1] == 8
 
 
 @pytest.mark.parametrize("use_history", [True, False])

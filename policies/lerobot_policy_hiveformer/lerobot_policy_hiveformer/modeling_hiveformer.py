@@ -644,12 +644,15 @@ class MultiHeadAttention(nn.Module):
 
     def _heads(self, x: Tensor, parts: int = 1) -> Tensor | tuple[Tensor, ...]:
         """(B, S, parts * D) -> `parts` tensors (B, heads, S, head_dim), zero-padded to FUSED_CPU_MIN_HEAD_DIM
-        on CPU without attention dropout: PyTorch's fused CPU kernel is slow at head dimensions under 16
-        (the paper's is 8), and zero columns in queries, keys and values change no score and no output
-        (a rollout's cross-attention, 193 queries x 1,170 keys: ~1.4x faster)."""
+        on CPU where no gradient is taken (rollouts): PyTorch's fused CPU kernel is slow at head dimensions under
+        16 (the paper's is 8), and zero columns in queries, keys and values change no score and no output (a
+        rollout's cross-attention, 193 queries x 1,170 keys: ~1.4x faster). A training step keeps the heads as
+        they are: there the kernels' forward and backward passes are no slower at 8, and the padding's copies,
+        zero-fills and gradient slices cost ~20 ms of a `make reference` step (README, benchmarks)."""
         head_dim = x.shape[-1] // (parts * self.num_heads)
         heads = x.unflatten(-1, (parts, self.num_heads, head_dim)).movedim(-3, 1).transpose(-2, -3)
-        padding = FUSED_CPU_MIN_HEAD_DIM - head_dim if x.device.type == "cpu" and not self._dropout_p() else 0
+        inference = x.device.type == "cpu" and not x.requires_grad and not self._dropout_p()
+        padding = FUSED_CPU_MIN_HEAD_DIM - head_dim if inference else 0
         if padding > 0:
             heads = F.pad(heads, (0, padding))  # (B, parts, heads, S, hd)
         return heads[:, 0] if parts == 1 else heads.unbind(1)
