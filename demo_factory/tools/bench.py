@@ -297,12 +297,17 @@ def _measure_compute():
     return module
 
 
-def train_step_against_kernel_floor(root: Path, steps: int, repeats: int = 10, settings: dict | None = None) -> dict:
+def train_step_against_kernel_floor(root: Path, steps: int, repeats: int = 10, settings: dict | None = None,
+                                    rounds: int = 5) -> dict:
     """One reference-configuration training step (HiveFormer as `lerobot-train` builds it on `root`: batch 16,
     one-hot instructions, no attention dropout, `settings` (HiveformerConfig fields, e.g. `make reference`'s
     SEEN_RECIPE) over the plugin's defaults; forward, backward, AdamW step; the machine's torch threads)
     against its kernel floor: each of the step's convolutions and attention calls re-run alone with its
-    backward pass (`measure_compute.kernels_alone_ms`, as the inference floor)."""
+    backward pass (`measure_compute.kernel_calls_ms`, as the inference floor), `repeats` times in a row.
+
+    Steps and floor are measured in alternation, `rounds` rounds of `steps // rounds` steps (at least one) then
+    the floor, and the ratio is the median of the rounds' ratios: on a shared machine whose speed swings by tens
+    of percent over a minute, a step and a floor measured minutes apart compare two machines."""
     from types import SimpleNamespace
 
     import torch
@@ -325,22 +330,33 @@ def train_step_against_kernel_floor(root: Path, steps: int, repeats: int = 10, s
     batch = preprocessor(next(iter(loader)))
     optimizer = config.get_optimizer_preset().build(policy.get_optim_params())  # as lerobot-train builds it
     policy.train()
-    durations = []
-    for _ in range(steps + 1):  # the first step also encodes the instructions and warms the allocator
+
+    def step() -> float:
         began = time.perf_counter()
         loss, _ = policy.forward(batch)
         optimizer.zero_grad()
         loss.backward()
         optimizer.step()
-        durations.append(time.perf_counter() - began)
-    step_ms = 1000 * float(np.median(durations[1:]))
-    floor = _measure_compute().kernels_alone_ms(policy, lambda: policy.forward(batch), repeats, backward=True)
-    floor_ms = sum(floor.values())
+        return time.perf_counter() - began
+
+    step()  # the first step also encodes the instructions and warms the allocator
+    measure = _measure_compute()
+    calls = measure.record_kernel_calls(lambda: policy.forward(batch))
+    durations, floors, ratios = [], [], []
+    for _ in range(max(rounds, 1)):
+        round_durations = [step() for _ in range(max(steps // max(rounds, 1), 1))]
+        floor = measure.kernel_calls_ms(calls, repeats, backward=True)
+        durations += round_durations
+        floors.append(floor)
+        ratios.append(1000 * float(np.median(round_durations)) / sum(floor.values()))
+    floor = {kind: round(float(np.median([f[kind] for f in floors])), 2) for kind in floors[0]}
     recipe = {name: getattr(config, name) for name in ("whole_episodes", "stem_point_cloud")}
     return {"batch_size": REFERENCE_BATCH_SIZE, "n_history": config.n_history, **recipe,
             "keyframes_in_batch": int((~batch["action_is_pad"]).sum()), "threads": torch.get_num_threads(),
-            "train_step_ms": round(step_ms, 1), "kernel_floor_ms": floor, "kernel_floor_total_ms": round(floor_ms, 1),
-            "step_over_floor": round(step_ms / floor_ms, 2)}
+            "rounds": len(ratios), "train_step_ms": round(1000 * float(np.median(durations)), 1),
+            "kernel_floor_ms": floor, "kernel_floor_total_ms": round(sum(floor.values()), 1),
+            "step_over_floor": round(float(np.median(ratios)), 2),
+            "step_over_floor_range": [round(min(ratios), 2), round(max(ratios), 2)]}
 
 
 def bench_hiveformer_training(episodes: int, train_steps: int) -> dict:

@@ -112,6 +112,11 @@ def kernels_alone_ms(policy, step, repeats: int = 50, backward: bool = False) ->
     cannot go. With `backward`, each call is timed with its backward pass too (the gradients of its inputs
     that needed them and of its weights), as in a training step.
     """
+    return kernel_calls_ms(record_kernel_calls(step), repeats, backward)
+
+
+def record_kernel_calls(step) -> list[tuple]:
+    """The convolution and attention calls `step()` makes, with their inputs: (kind, function, args, kwargs)."""
     calls = []
     # Recorded where every convolution goes through, `nn.Conv2d` and the policy's direct calls alike.
     kernels = {"conv2d": "convolutions", "scaled_dot_product_attention": "attention"}
@@ -131,6 +136,12 @@ def kernels_alone_ms(policy, step, repeats: int = 50, backward: bool = False) ->
     finally:
         for name, function in originals.items():
             setattr(F, name, function)
+    return calls
+
+
+def kernel_calls_ms(calls: list[tuple], repeats: int, backward: bool = False) -> dict[str, float]:
+    """Milliseconds of each kind of recorded call (`record_kernel_calls`), each call re-run `repeats` times in a
+    row (caches hot) and its median kept; with `backward`, each with its backward pass."""
     totals = {"convolutions": 0.0, "attention": 0.0}
     for kind, function, args, kwargs in calls:
         call = _backward_call(function, args, kwargs) if backward else _inference_call(function, args, kwargs)
