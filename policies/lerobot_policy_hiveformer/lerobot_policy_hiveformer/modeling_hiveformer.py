@@ -167,16 +167,17 @@ def keyframe_observations(batch: dict, config: HiveformerConfig, keep: Tensor | 
     # LeRobot's native depth: (.., 1, H, W) millimetres, 0 = no hit.
     depth_mm = per_camera(DEPTH_PREFIX)
     height, width = rgb.shape[-2:]
-    rows = columns = source = None
+    pixel_columns = pixel_rows = source = None  # the camera pixels each map pixel shows (default: its own)
     if rescale is not None:
         rows, columns = random_rescale_sources(pixel_steps, height, width, *rescale)  # (M, H), (M, W)
         source = (rows[:, :, None] * width + columns[:, None, :]).view(-1, 1, height * width)  # (M, 1, H*W)
         rgb, depth_mm = resample(rgb, source), resample(depth_mm, source)
-        rows = rows[:, None, None, :, None].to(depth_mm.dtype)  # as depth_to_world_points broadcasts them
-        columns = columns[:, None, None, None, :].to(depth_mm.dtype)
+        pixel_rows = rows[:, None, None, :, None].float()  # as depth_to_world_points broadcasts them
+        pixel_columns = columns[:, None, None, None, :].float()
     depth_mm = depth_mm[..., 0, :, :].float()
     valid_pixels = depth_mm > 0
-    points = depth_to_world_points(depth_mm / 1000.0, pixel_calibration, columns, rows) * valid_pixels.unsqueeze(-3)
+    points = depth_to_world_points(depth_mm / 1000.0, pixel_calibration, pixel_columns, pixel_rows)
+    points = points * valid_pixels.unsqueeze(-3)
     gripper = with_time(batch[OBS_STATE])[..., :GRIPPER_STATE_DIM].float()
     gripper_xyz = take_steps(gripper, pixel_steps)[:, None, :3].expand_as(pixel_calibration[..., :3])
     mark = gripper_mark(gripper_xyz, pixel_calibration, height, width, source)
