@@ -307,7 +307,9 @@ def train_step_against_kernel_floor(root: Path, steps: int, repeats: int = 10, s
 
     Steps and floor are measured in alternation, `rounds` rounds of `steps // rounds` steps (at least one) then
     the floor, and the ratio is the median of the rounds' ratios: on a shared machine whose speed swings by tens
-    of percent over a minute, a step and a floor measured minutes apart compare two machines."""
+    of percent over a minute, a step and a floor measured minutes apart compare two machines. Each round starts
+    with an untimed step: the floor's re-runs leave the caches and the allocator with their own tensors, and the
+    step after them ran 10-17 % slower than the next in three rounds of five, which follows a step as in training."""
     from types import SimpleNamespace
 
     import torch
@@ -345,6 +347,7 @@ def train_step_against_kernel_floor(root: Path, steps: int, repeats: int = 10, s
     rounds = max(rounds, 1)
     durations, floors, ratios = [], [], []
     for _ in range(rounds):
+        step()  # after the floor's re-runs (or the recording): a step follows a step, as in training
         round_durations = [step() for _ in range(max(steps // rounds, 1))]
         floor = measure.kernel_calls_ms(calls, repeats, backward=True)
         durations += round_durations
