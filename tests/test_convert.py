@@ -29,7 +29,7 @@ from demo_factory.record import (
 )
 from demo_factory.tasks import get_task
 from demo_factory.tasks.variations import Variation
-from demo_factory.convert.writer import PARAPHRASES_FILE
+from demo_factory.convert.writer import PARAPHRASES_FILE, RELABELS_FILE
 
 CAMERAS = ["left_shoulder", "right_shoulder", "wrist"]
 SIZE = (32, 32)
@@ -54,11 +54,13 @@ def _robot(rng) -> RobotState:
 
 
 def write_recording(folder: Path, task: str, split: str, variation, seed: int, keyframes: int,
-                    dense_fps: float = 0.0, cameras=CAMERAS) -> Path:
-    """A synthetic episode recording: random images, ``keyframes`` keyframes, optional dense frames."""
+                    dense_fps: float = 0.0, cameras=CAMERAS, scene: dict | None = None) -> Path:
+    """A synthetic episode recording: random images, ``keyframes`` keyframes, optional dense frames; ``scene``:
+    its scene facts."""
     rng = np.random.default_rng(seed)
     info = EpisodeInfo(FORMAT_VERSION, task, split, variation.id, list(variation.words), seed,
-                       get_task(task).instruction(variation, seed), list(cameras), SIZE, dense_fps)
+                       get_task(task).instruction(variation, seed), list(cameras), SIZE, dense_fps,
+                       extra=scene or {})
     path = folder / f"{task}_{split}_var{variation.id:04d}_seed{seed:010d}.mcap"
     writer = EpisodeWriter(path, info)
     second = 1_000_000_000
@@ -211,6 +213,29 @@ def test_synthetic_splits_list_every_synthetic_instruction_of_each_task(converte
             assert alternatives == task.synthetic_instructions(variation) and len(alternatives) == 4
     for split in ("test_unseen_corrupted", "test_unseen_human"):
         assert not (converted / split / PARAPHRASES_FILE).exists()
+
+
+def test_train_splits_list_each_episode_s_relabels_none_of_a_test_variation(tmp_path):
+    """meta/instruction_relabels.json: episode index -> [[n, synthetic instructions], ...] from the recorded
+    scene (`Task.instruction_relabels`), without the relabels that are test variations; none for test splits."""
+    task = get_task("push_buttons")
+    test = task.split_variations("test")
+    # A train variation whose scene holds a test variation's buttons: (a, b) with a test (a, c) among its relabels.
+    variation, leak = next((v, t) for t in test if len(t.words) == 2 for v in task.split_variations("train")
+                           if v.words[0] == t.words[0] and t.words[1] not in v.words and len(v.words) == 2)
+    scene = {"buttons": {c: [0.5, 0.1 * i] for i, c in enumerate((*variation.words, leak.words[1]))}}
+    folder = tmp_path / "raw"
+    folder.mkdir()
+    write_recording(folder, "push_buttons", "train", variation, 5, keyframes=7, scene=scene)
+    write_recording(folder, "push_buttons", "test", test[0], 6, keyframes=4, scene={"buttons": {}})
+    out = tmp_path / "lerobot"
+    assert main(["convert", "--in", str(folder), "--out", str(out), "--repo-id", "me/pb", "--no-progress"]) == 0
+    relabels = json.loads((out / "train" / RELABELS_FILE).read_text())
+    expected = [(words, n) for v, n in task.instruction_relabels(variation, scene) if v != leak
+                for words in [task.synthetic_instructions(v)]]
+    assert leak in {v for v, _ in task.instruction_relabels(variation, scene)} and len(expected) == 3
+    assert sorted(relabels) == ["0"] and sorted((r[1], r[0]) for r in relabels["0"]) == sorted(expected)
+    assert not (out / "test_unseen_synthetic" / RELABELS_FILE).exists()
 
 
 def test_human_split_uses_every_sentence_of_the_file(converted, human_file):

@@ -1,5 +1,5 @@
 """The plugin's dataset reader: LeRobot's items, bit for bit, only for HiveFormer trainings; whole-episode
-samples with paraphrased instructions there; native depth never augmented."""
+samples with paraphrased or relabelled instructions there; native depth never augmented."""
 
 import copy
 import json
@@ -166,6 +166,53 @@ def test_a_malformed_paraphrase_file_is_refused_in_one_line(paraphrased_root):
     config, _ = tiny_config(paraphrased_root)
     with pytest.raises(ValueError, match="task_paraphrases.json: expected an object"):
         factory.make_dataset(training_config(paraphrased_root, config))
+
+
+@pytest.fixture
+def relabelled_root(tiny_dataset_root, tmp_path):
+    root = tmp_path / "tiny"
+    shutil.copytree(tiny_dataset_root, root)
+    relabels = {"0": [[2, ["press maroon first"]], [3, ["maroon, then navy", "maroon and navy"]]], "3": [[3, ["x"]]]}
+    (root / dataset_reading.RELABELS_FILE).write_text(json.dumps(relabels))
+    return root
+
+
+def test_relabelled_samples_end_by_the_relabel_s_last_keyframe_with_its_instruction(relabelled_root):
+    """With relabel_probability, a sample of a relabelled episode takes, that often, one of its relabels: the
+    stock window ending at the drawn frame or the relabel's n-th keyframe, whichever is first (a whole-episode
+    sample: the n-th), with an instruction among the relabel's; episodes without relabels stay as they were."""
+    lengths = {"press maroon first": 2, "maroon, then navy": 3, "maroon and navy": 3, "x": 3}
+    config, _ = tiny_config(relabelled_root, n_history=5, relabel_probability=0.5)
+    dataset = factory.make_dataset(training_config(relabelled_root, config))
+    stock = history_dataset(relabelled_root, history=5)
+    torch.manual_seed(0)
+    drawn = Counter()
+    for _ in range(200):
+        item = dataset[2]  # a frame of episode 0 (frames 0-3), whose whole episode fits in the history
+        drawn[item["task"]] += 1
+        n = lengths.get(item["task"], 4)
+        assert_same_items({**stock[n - 1], "task": item["task"]}, item) and int((~item["action_is_pad"]).sum()) == n
+    assert drawn[INSTRUCTIONS[0]] in range(75, 126) and min(drawn.values()) > 10 and len(drawn) == 4
+    for index, (first, last) in enumerate(episode_of_each_frame()[4:13], start=4):  # episodes 1 and 2: none listed
+        assert_same_items(stock[last], dataset[index])
+    # Windows ending at every frame (episode 3 is longer than the history): the window ends earlier where the
+    # relabel's keyframes end first.
+    config, _ = tiny_config(relabelled_root, n_history=5, relabel_probability=1.0, whole_episodes=False)
+    dataset = factory.make_dataset(training_config(relabelled_root, config))
+    for index, (first, _) in enumerate(episode_of_each_frame()):
+        if first in (0, 13):
+            item = dataset[index]
+            assert_same_items({**stock[min(index, first + lengths[item["task"]] - 1)], "task": item["task"]}, item)
+    for overrides in ({}, {"relabel_probability": 1.0, "text_encoder": "one_hot"}):  # 0, or one-hot codes: none
+        off, _ = tiny_config(relabelled_root, n_history=5, **overrides)
+        assert factory.make_dataset(training_config(relabelled_root, off)).reader.relabels == {}
+
+
+def test_a_malformed_relabel_file_is_refused_in_one_line(relabelled_root):
+    (relabelled_root / dataset_reading.RELABELS_FILE).write_text(json.dumps({"0": [[0, ["press maroon"]]]}))
+    config, _ = tiny_config(relabelled_root, relabel_probability=1.0)
+    with pytest.raises(ValueError, match="instruction_relabels.json: expected an object"):
+        factory.make_dataset(training_config(relabelled_root, config))
 
 
 def test_items_with_history_are_bit_identical_to_the_stock_reader(tiny_dataset_root):

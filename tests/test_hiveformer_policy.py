@@ -403,6 +403,8 @@ def test_config_rejects_bad_values():
         HiveformerConfig(lr_schedule="linear", device="cpu")
     with pytest.raises(ValueError, match="history_cache_mib must be >= 0, got -1"):
         HiveformerConfig(history_cache_mib=-1, device="cpu")
+    with pytest.raises(ValueError, match=r"relabel_probability must be in \[0, 1\], got 1.5"):
+        HiveformerConfig(relabel_probability=1.5, device="cpu")
 
 
 def test_training_decodes_only_supervised_steps_with_the_same_predictions(tiny_dataset_root):

@@ -72,3 +72,31 @@ def test_the_tower_target_stands_out_from_the_table_in_brightness():
             target, table = view.segmentation == task.target_body, view.segmentation == world.table
             assert target.sum() >= 4, name
             assert luminance[table].mean() - luminance[target].mean() > 0.3, name
+
+
+def test_push_buttons_relabels_are_the_scene_s_orders_whose_expert_starts_the_same():
+    """Every other order of 1-3 of the scene's buttons that starts as the instructed one, with the keyframes
+    they share (3 a press); the expert of each, in the same scene, emits exactly those keyframes first."""
+    import numpy as np
+
+    from demo_factory.sim.world import World
+
+    task = get_task("push_buttons")
+    variation = task.variation_of("green,rose")
+    with World(image_size=(32, 32)) as world:
+        task.build_scene(world, variation, np.random.default_rng(3))
+        scene = task.scene_facts()
+        other = next(c for c in scene["buttons"] if c not in variation.words)
+        relabels = task.instruction_relabels(variation, scene)
+        assert {(v.words, n) for v, n in relabels} == {
+            (("green",), 3), (("green", other), 3), (("green", other, "rose"), 3), (("green", "rose", other), 6)}
+        expert = task.expert(world)
+        assert len(expert) == 6
+        for relabel, n in relabels:
+            task.instructed = relabel
+            assert task.expert(world)[:n] == expert[:n] and task.expert(world)[n:n + 1] != expert[n:n + 1]
+    three = task.instruction_relabels(task.variation_of(("green", "rose", other)), scene)
+    assert {(v.words, n) for v, n in three} == {
+        (("green",), 3), (("green", "rose"), 6), (("green", other), 3), (("green", other, "rose"), 3)}
+    assert task.instruction_relabels(variation, {}) == []
+    assert get_task("tower").instruction_relabels(task.variation(0), scene) == []  # tasks relabel nothing by default

@@ -165,7 +165,18 @@ def _source(episode: Episode, path: Path, granularity: str, stride: int = 1) -> 
         exact_attempts=sum(a.status == "exact" for a in info.planner_attempts),
         success=info.success,
         versions=tuple(sorted(info.versions.items())),
+        relabels=_relabels(info),
     )
+
+
+def _relabels(info) -> tuple[tuple[tuple[str, ...], int], ...]:
+    """A train recording's instruction relabels (``Task.instruction_relabels``), none of a test variation."""
+    if info.task not in TASKS or info.split != "train":
+        return ()
+    task = get_task(info.task)
+    test = set(task.split_variations("test"))
+    relabels = task.instruction_relabels(task.variation(info.variation_id), info.extra)
+    return tuple((v.words, n) for v, n in relabels if v not in test)
 
 
 @dataclass

@@ -51,6 +51,9 @@ class SourceEpisode:
     exact_attempts: int = 0  # attempts that found an exact path
     success: bool = True
     versions: tuple[tuple[str, str], ...] = ()  # library versions that recorded it
+    # Train recordings: (words, n) of other variations, none of the test split, whose expert starts with
+    # this episode's first n keyframes (``Task.instruction_relabels``).
+    relabels: tuple[tuple[tuple[str, ...], int], ...] = ()
 
 
 @dataclass(frozen=True)

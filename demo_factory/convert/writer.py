@@ -8,7 +8,10 @@ demo-factory's own metadata (provenance of every episode) goes in ``meta/demo_fa
 0.6 drops unknown keys of ``meta/info.json`` when it rewrites it. A split whose instructions are the
 tasks' synthetic ones also lists, in ``meta/task_paraphrases.json``, every synthetic instruction of each
 task string's variation (task string -> instructions that mean the same): a policy may train on all of
-them, as the HiveFormer authors do (the plugin's ``sample_paraphrases``).
+them, as the HiveFormer authors do (the plugin's ``sample_paraphrases``). A keyframe split of train
+recordings whose task relabels them (``Task.instruction_relabels``) lists in
+``meta/instruction_relabels.json`` the other instructions each episode's first keyframes demonstrate (the
+plugin's ``relabel_probability``).
 """
 
 from __future__ import annotations
@@ -38,6 +41,7 @@ from demo_factory.tasks.variations import Variation
 DATASET_FORMAT_VERSION = 3
 PROVENANCE_FILE = "meta/demo_factory.json"
 PARAPHRASES_FILE = "meta/task_paraphrases.json"  # read by lerobot_policy_hiveformer (its dataset_reading)
+RELABELS_FILE = "meta/instruction_relabels.json"  # likewise
 # A split is cut into batches of at least this many episodes: each batch costs a process, a dataset and
 # its share of the merge (~1-2 s), which below ~16 episodes a split (2 batches) costs more than it saves.
 SMALLEST_BATCH = 8
@@ -212,6 +216,18 @@ def task_paraphrases(episodes: list[PlannedEpisode]) -> dict[str, list[str]]:
     return paraphrases
 
 
+def instruction_relabels(episodes: list[PlannedEpisode]) -> dict[str, list]:
+    """Episode index -> [[n, every synthetic instruction of a relabel], ...] for the episodes with relabels:
+    the episode's first n keyframes also demonstrate each of those instructions."""
+    relabels = {}
+    for index, planned in enumerate(episodes):
+        source = planned.source
+        if source.relabels:
+            task = get_task(source.task)
+            relabels[str(index)] = [[n, task.synthetic_instructions(task.variation_of(words))] for words, n in source.relabels]
+    return relabels
+
+
 def write_split(plan: SplitPlan, root: Path, repo_id: str, layout: Layout, progress: tqdm | None = None,
                 workers: int = 1) -> SplitSummary:
     """Write one split as a LeRobot dataset at ``root`` (which must not exist), with up to ``workers``
@@ -241,5 +257,8 @@ def write_split(plan: SplitPlan, root: Path, repo_id: str, layout: Layout, progr
     if plan.instruction_source == "synthetic":
         paraphrases = task_paraphrases(plan.episodes)
         (root / PARAPHRASES_FILE).write_text(json.dumps(paraphrases, indent=2) + "\n", encoding="utf-8")
+        relabels = instruction_relabels(plan.episodes) if layout.granularity == "keyframe" else {}
+        if relabels:
+            (root / RELABELS_FILE).write_text(json.dumps(relabels) + "\n", encoding="utf-8")
     return SplitSummary(plan.name, repo_id, plan.instruction_source, len(plan.episodes), sum(lengths),
                         len({e.source.variation_id for e in plan.episodes}), min(lengths, default=0))

@@ -168,6 +168,13 @@ class Task(ABC):
         options = self.synthetic_instructions(variation)
         return options[np.random.default_rng([episode_seed, 7]).integers(len(options))]
 
+    def instruction_relabels(self, variation: Variation, scene: dict) -> list[tuple[Variation, int]]:
+        """Other variations whose expert, in the same scene, would start exactly as this episode's did:
+        (variation, n) where the episode's first n expert keyframes are that variation's first n. Read
+        from the recorded ``scene_facts``; a training may relabel the episode's first n keyframe actions
+        with that variation's instruction. By default none."""
+        return []
+
     # -- simulation -----------------------------------------------------------------------
     @abstractmethod
     def build_scene(self, world, variation: Variation, rng: np.random.Generator) -> None:

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import itertools
+
 import numpy as np
 import pybullet as p
 
@@ -28,6 +30,7 @@ MIN_SPACING = 0.12
 # scene shows which buttons are done. Without it, only the history tells, and policies pressed the first
 # instructed button again at the third press (README, unseen). Lime is not in the palette, so never a button.
 PRESSED_RGBA = rgba("lime")
+KEYFRAMES_PER_PRESS = 3  # over the cap, pressed, over it again (motions.press)
 
 
 def _sequence_text(colours: tuple[str, ...], fmt: str, then: str, last_then: str | None = None) -> str:
@@ -60,6 +63,20 @@ class PushButtons(Task):
         else:
             texts.append(f"press down the {first} button")
         return texts
+
+    def instruction_relabels(self, variation: Variation, scene: dict) -> list[tuple[Variation, int]]:
+        """Every other order of 1-3 of the scene's buttons that starts as the instructed one: its expert
+        presses the same buttons first, so the episode's keyframes of the presses they share (3 a press)
+        demonstrate it too. For (green, rose) with a black button: (green), (green, black), (green, black,
+        rose) for one press, (green, rose, black) for two."""
+        words = variation.words
+        relabels = []
+        for length in range(1, N_BUTTONS + 1):
+            for sequence in itertools.permutations(scene.get("buttons", ()), length):
+                shared = next((k for k, (a, b) in enumerate(zip(sequence, words)) if a != b), min(length, len(words)))
+                if sequence != words and shared:
+                    relabels.append((self.variation_of(sequence), KEYFRAMES_PER_PRESS * shared))
+        return relabels
 
     # -- scene ----------------------------------------------------------------------------
     def build_scene(self, world, variation: Variation, rng: np.random.Generator) -> None:

@@ -264,7 +264,7 @@ def plot_learning_curve(path: Path, curve: list[dict], title: str) -> None:
 def run(command: list[str], log: Path) -> None:
     """Run one stage's command, its output teed to a log file; stop the run if it fails."""
     print("$ " + " ".join(command), flush=True)
-    with log.open("w") as out:
+    with log.open("a") as out:  # a resumed stage adds to its log, never replaces it
         process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, bufsize=1)
         for line in process.stdout:
             out.write(line)

@@ -128,6 +128,14 @@ class HiveformerConfig(PreTrainedConfig):
     # task (`meta/task_paraphrases.json`: task string -> instructions that mean the same), as the authors
     # draw among a variation's instructions. Not with one_hot, whose codes name strings, not meanings.
     sample_paraphrases: bool = True
+    # Training only: with this probability a sample of an episode the dataset relabels
+    # (`meta/instruction_relabels.json`: episode index -> [[n, instructions], ...], written by the dataset's
+    # maker: the episode's first n keyframes also demonstrate those instructions) takes one of its relabels,
+    # drawn uniformly: its window ends at the n-th keyframe at the latest (a whole-episode sample: there), with
+    # an instruction drawn among the relabel's.
+    # push_buttons: "push green, then black" for the first press of an episode of "push green, then rose",
+    # so that no press is learnt from the instruction's later words. 0: never (the authors'). Not with one_hot.
+    relabel_probability: float = 0.0
     # Instructions known to the "one_hot" encoder; filled from the training dataset's tasks when empty.
     # Unknown instructions share one extra code.
     instruction_vocabulary: list[str] = field(default_factory=list)
@@ -191,6 +199,8 @@ class HiveformerConfig(PreTrainedConfig):
             raise ValueError(f"dropout must be in [0, 1), got {self.dropout}.")
         if not 0.0 <= self.attention_dropout < 1.0:
             raise ValueError(f"attention_dropout must be in [0, 1), got {self.attention_dropout}.")
+        if not 0.0 <= self.relabel_probability <= 1.0:
+            raise ValueError(f"relabel_probability must be in [0, 1], got {self.relabel_probability}.")
         if self.attention_temperature <= 0:
             raise ValueError(f"attention_temperature must be > 0, got {self.attention_temperature}.")
         if not 0 < self.augmentation_min_scale <= self.augmentation_max_scale:

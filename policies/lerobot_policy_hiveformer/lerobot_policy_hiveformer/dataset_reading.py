@@ -15,7 +15,9 @@
    its whole episode (the window ending at the episode's last keyframe, when the episode fits in the
    history: every keyframe supervised once per sample, none ~n times as often as the last) and, where
    the dataset lists paraphrases of its tasks (`meta/task_paraphrases.json`), replaces the sample's
-   instruction by one drawn among them.
+   instruction by one drawn among them; where it lists relabels of the episode (`meta/instruction_relabels.json`)
+   and `relabel_probability` > 0, the sample may instead end at the episode's n-th keyframe at the latest, with
+   a relabel's instruction.
 
 Both apply only to the datasets HiveFormer trains on. `install()` (run when LeRobot imports the plugin)
 wraps `lerobot.datasets.factory.make_dataset`, which `lerobot-train` calls: when the training
@@ -26,6 +28,7 @@ applies the first method alone to a dataset built by hand. Version-checked: with
 0.6.x nothing is replaced and a warning says so.
 """
 
+import dataclasses
 import functools
 import importlib.metadata
 import json
@@ -40,6 +43,8 @@ SUPPORTED_LEROBOT = "0.6."  # the minor version whose `_query_hf_dataset` and `g
 POLICY_TYPE = "hiveformer"
 # Task string -> the instructions that say the same thing (itself included); written by the dataset's maker.
 PARAPHRASES_FILE = "meta/task_paraphrases.json"
+# Episode index -> [[n, instructions], ...]: the episode's first n keyframes also demonstrate those instructions.
+RELABELS_FILE = "meta/instruction_relabels.json"
 
 
 class HistoryOnceReader(DatasetReader):
@@ -125,41 +130,54 @@ def expand(stored: torch.Tensor, dtype: torch.dtype) -> torch.Tensor:
 
 
 class TrainingReader(HistoryOnceReader):
-    """HiveFormer's training reader: whole-episode samples and paraphrased instructions (module docstring).
-
-    Configured by `configure_training`; without it, it reads as `HistoryOnceReader`.
+    """HiveFormer's training reader: whole-episode samples, paraphrased and relabelled instructions (module
+    docstring). Configured by `configure_training`; without it, it reads as `HistoryOnceReader`.
     """
 
     whole_episodes = False
     paraphrases: dict[str, list[str]] = {}
+    relabels: dict[int, list] = {}  # episode index -> [[n, instructions], ...] (`read_relabels`)
+    relabel_probability = 0.0
 
     def get_item(self, idx) -> dict:
-        if self.whole_episodes:
-            idx = int(self._episode_last_rows()[idx])
+        rows = self._episode_rows()
+        if self.whole_episodes and rows.fits[idx]:
+            idx = int(rows.last[idx])
+        relabels = self.relabels.get(int(rows.episode[idx]))
+        instructions = None
+        if relabels and float(torch.rand(())) < self.relabel_probability:
+            n, instructions = relabels[int(torch.randint(len(relabels), ()))]
+            idx = min(idx, int(rows.first[idx]) + n - 1)  # the window ends at the relabel's n-th keyframe at the latest
         item = super().get_item(idx)
-        alternatives = self.paraphrases.get(item["task"])
+        alternatives = instructions or self.paraphrases.get(item["task"])
         if alternatives:
             item["task"] = alternatives[int(torch.randint(len(alternatives), ()))]
         return item
 
-    def _episode_last_rows(self) -> np.ndarray:
-        """For every row, the row of its episode's last frame where the episode fits in the history
-        window, else the row itself. Built once, from the episode-index column only."""
-        cached = self.__dict__.get("_last_rows")
+    def _episode_rows(self) -> "EpisodeRows":
+        """For every row: its episode, the rows of the episode's first and last frames, and whether the episode
+        fits in the history window. Built once, from the episode-index column only."""
+        cached = self.__dict__.get("_episode_rows_cache")
         if cached is not None and cached[0] is self.hf_dataset:
             return cached[1]
         observed = [min(deltas) for key, deltas in (self.delta_indices or {}).items() if key.startswith("observation.")]
         window = 1 - min(observed, default=0)  # observation steps (the action has one look-back step more)
         episodes = np.asarray(self.hf_dataset.with_format(None)["episode_index"])
-        rows = np.arange(len(episodes))
-        last_rows = rows.copy()
+        rows = EpisodeRows(episodes, *(np.zeros(len(episodes), int) for _ in range(2)), np.zeros(len(episodes), bool))
         if len(episodes):
             boundaries = np.flatnonzero(np.diff(episodes)) + 1
             for start, stop in zip(np.r_[0, boundaries], np.r_[boundaries, len(episodes)], strict=True):
-                if stop - start <= window:
-                    last_rows[start:stop] = stop - 1
-        self.__dict__["_last_rows"] = (self.hf_dataset, last_rows)
-        return last_rows
+                rows.first[start:stop], rows.last[start:stop], rows.fits[start:stop] = start, stop - 1, stop - start <= window
+        self.__dict__["_episode_rows_cache"] = (self.hf_dataset, rows)
+        return rows
+
+
+@dataclasses.dataclass
+class EpisodeRows:
+    episode: np.ndarray  # (rows,) episode index
+    first: np.ndarray  # (rows,) the row of its episode's first frame
+    last: np.ndarray  # (rows,) the row of its episode's last frame
+    fits: np.ndarray  # (rows,) bool: the episode fits in the history window
 
 
 def read_paraphrases(root) -> dict[str, list[str]]:
@@ -175,6 +193,23 @@ def read_paraphrases(root) -> dict[str, list[str]]:
     return paraphrases
 
 
+def read_relabels(root) -> dict[int, list]:
+    """The dataset's `meta/instruction_relabels.json` as {episode index: [[n, instructions], ...]} ({} when none)."""
+    path = Path(root) / RELABELS_FILE
+    if not path.is_file():
+        return {}
+    relabels = json.loads(path.read_text(encoding="utf-8"))
+    if not isinstance(relabels, dict) or not all(
+        k.isdigit() and isinstance(v, list) and all(
+            isinstance(r, list) and len(r) == 2 and isinstance(r[0], int) and r[0] >= 1 and isinstance(r[1], list)
+            and r[1] and all(isinstance(x, str) for x in r[1]) for r in v)
+        for k, v in relabels.items()
+    ):
+        raise ValueError(f"{path}: expected an object mapping each episode index to a list of "
+                         "[keyframes >= 1, [instruction, ...]] pairs.")
+    return {int(k): v for k, v in relabels.items()}
+
+
 def configure_training(dataset, policy_config) -> bool:
     """Make `dataset` read with `TrainingReader` as `policy_config` (a HiveformerConfig) asks; False if it cannot."""
     if not use_history_once(dataset):
@@ -183,8 +218,10 @@ def configure_training(dataset, policy_config) -> bool:
     reader.__class__ = TrainingReader
     reader.whole_episodes = bool(policy_config.whole_episodes)
     reader.cache_bytes = int(policy_config.history_cache_mib) * 2**20
-    use_paraphrases = policy_config.sample_paraphrases and policy_config.text_encoder != "one_hot"
-    reader.paraphrases = read_paraphrases(dataset.root) if use_paraphrases else {}
+    meanings = policy_config.text_encoder != "one_hot"  # one-hot codes name strings, not meanings
+    reader.paraphrases = read_paraphrases(dataset.root) if policy_config.sample_paraphrases and meanings else {}
+    reader.relabel_probability = float(policy_config.relabel_probability)
+    reader.relabels = read_relabels(dataset.root) if reader.relabel_probability and meanings else {}
     return True
 
 
