@@ -100,3 +100,4 @@ def test_push_buttons_relabels_are_the_scene_s_orders_whose_expert_starts_the_sa
         (("green",), 3), (("green", "rose"), 6), (("green", other), 3), (("green", other, "rose"), 3)}
     assert task.instruction_relabels(variation, {}) == []
     assert get_task("tower").instruction_relabels(task.variation(0), scene) == []  # tasks relabel nothing by default
+    assert get_task("push_button").instruction_relabels(get_task("push_button").variation_of("green"), scene) == []  # one press

@@ -71,7 +71,7 @@ class PushButtons(Task):
         rose) for one press, (green, rose, black) for two."""
         words = variation.words
         relabels = []
-        for length in range(1, N_BUTTONS + 1):
+        for length in range(1, min(N_BUTTONS, self.max_sequence) + 1):
             for sequence in itertools.permutations(scene.get("buttons", ()), length):
                 shared = next((k for k, (a, b) in enumerate(zip(sequence, words)) if a != b), min(length, len(words)))
                 if sequence != words and shared:
