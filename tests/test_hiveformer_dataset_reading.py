@@ -177,10 +177,11 @@ def relabelled_root(tiny_dataset_root, tmp_path):
     return root
 
 
-def test_relabelled_samples_end_by_the_relabel_s_last_keyframe_with_its_instruction(relabelled_root):
-    """With relabel_probability, a sample of a relabelled episode takes, that often, one of its relabels: the
-    stock window ending at the drawn frame or the relabel's n-th keyframe, whichever is first (a whole-episode
-    sample: the n-th), with an instruction among the relabel's; episodes without relabels stay as they were."""
+def test_relabelled_samples_take_a_relabel_that_demonstrates_them(relabelled_root):
+    """With relabel_probability, a sample of a relabelled episode takes, that often, one of its relabels, with
+    an instruction among the relabel's: a whole-episode sample ends at the relabel's n-th keyframe, a window
+    keeps its frames and draws among the relabels whose n keyframes hold them; episodes without relabels
+    stay as they were."""
     lengths = {"press maroon first": 2, "maroon, then navy": 3, "maroon and navy": 3, "x": 3}
     config, _ = tiny_config(relabelled_root, n_history=5, relabel_probability=0.5)
     dataset = factory.make_dataset(training_config(relabelled_root, config))
@@ -195,14 +196,17 @@ def test_relabelled_samples_end_by_the_relabel_s_last_keyframe_with_its_instruct
     assert drawn[INSTRUCTIONS[0]] in range(75, 126) and min(drawn.values()) > 10 and len(drawn) == 4
     for index, (first, last) in enumerate(episode_of_each_frame()[4:13], start=4):  # episodes 1 and 2: none listed
         assert_same_items(stock[last], dataset[index])
-    # Windows ending at every frame (episode 3 is longer than the history): the window ends earlier where the
-    # relabel's keyframes end first.
+    # Windows ending at every frame (episode 3 is longer than the history): a window keeps its frames and takes
+    # a relabel whose keyframes hold them, or none.
     config, _ = tiny_config(relabelled_root, n_history=5, relabel_probability=1.0, whole_episodes=False)
     dataset = factory.make_dataset(training_config(relabelled_root, config))
     for index, (first, _) in enumerate(episode_of_each_frame()):
         if first in (0, 13):
+            held = {t for t, n in lengths.items() if index - first < n and (t == "x") == (first == 13)}
             item = dataset[index]
-            assert_same_items({**stock[min(index, first + lengths[item["task"]] - 1)], "task": item["task"]}, item)
+            assert_same_items({**stock[index], "task": item["task"]}, item)
+            tasks = {dataset[index]["task"] for _ in range(20)}
+            assert tasks == held if held else tasks <= set(INSTRUCTIONS)
     for overrides in ({}, {"relabel_probability": 1.0, "text_encoder": "one_hot"}):  # 0, or one-hot codes: none
         off, _ = tiny_config(relabelled_root, n_history=5, **overrides)
         assert factory.make_dataset(training_config(relabelled_root, off)).reader.relabels == {}

@@ -131,8 +131,9 @@ class HiveformerConfig(PreTrainedConfig):
     # Training only: with this probability a sample of an episode the dataset relabels
     # (`meta/instruction_relabels.json`: episode index -> [[n, instructions], ...], written by the dataset's
     # maker: the episode's first n keyframes also demonstrate those instructions) takes one of its relabels,
-    # drawn uniformly: its window ends at the n-th keyframe at the latest (a whole-episode sample: there), with
-    # an instruction drawn among the relabel's.
+    # drawn uniformly among those whose n keyframes hold the sample's window (a whole-episode sample: any, and
+    # it ends at the relabel's n-th keyframe), with an instruction drawn among the relabel's. The keyframes a
+    # training supervises stay those LeRobot's sampler draws.
     # push_buttons: "push green, then black" for the first press of an episode of "push green, then rose",
     # so that no press is learnt from the instruction's later words. 0: never (the authors'). Not with one_hot.
     relabel_probability: float = 0.0

@@ -16,8 +16,8 @@
    history: every keyframe supervised once per sample, none ~n times as often as the last) and, where
    the dataset lists paraphrases of its tasks (`meta/task_paraphrases.json`), replaces the sample's
    instruction by one drawn among them; where it lists relabels of the episode (`meta/instruction_relabels.json`)
-   and `relabel_probability` > 0, the sample may instead end at the episode's n-th keyframe at the latest, with
-   a relabel's instruction.
+   and `relabel_probability` > 0, a window whose frames all lie in an episode's first n keyframes may take a
+   relabel's instruction instead (a whole-episode sample then ends at its n-th keyframe).
 
 Both apply only to the datasets HiveFormer trains on. `install()` (run when LeRobot imports the plugin)
 wraps `lerobot.datasets.factory.make_dataset`, which `lerobot-train` calls: when the training
@@ -143,11 +143,13 @@ class TrainingReader(HistoryOnceReader):
         rows = self._episode_rows()
         if self.whole_episodes and rows.fits[idx]:
             idx = int(rows.last[idx])
-        relabels = self.relabels.get(int(rows.episode[idx]))
+        relabels = self.relabels.get(int(rows.episode[idx]), ())
+        if not (self.whole_episodes and rows.fits[idx]):  # a window: the relabels that demonstrate its last keyframe
+            relabels = [r for r in relabels if r[0] > idx - rows.first[idx]]
         instructions = None
         if relabels and float(torch.rand(())) < self.relabel_probability:
             n, instructions = relabels[int(torch.randint(len(relabels), ()))]
-            idx = min(idx, int(rows.first[idx]) + n - 1)  # the window ends at the relabel's n-th keyframe at the latest
+            idx = min(idx, int(rows.first[idx]) + n - 1)  # a whole episode ends at the relabel's n-th keyframe
         item = super().get_item(idx)
         alternatives = instructions or self.paraphrases.get(item["task"])
         if alternatives:
