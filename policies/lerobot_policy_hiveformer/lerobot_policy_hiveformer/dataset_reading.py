@@ -141,15 +141,16 @@ class TrainingReader(HistoryOnceReader):
 
     def get_item(self, idx) -> dict:
         rows = self._episode_rows()
-        if self.whole_episodes and rows.fits[idx]:
+        whole = self.whole_episodes and rows.fits[idx]
+        if whole:
             idx = int(rows.last[idx])
-        relabels = self.relabels.get(int(rows.episode[idx]), ())
-        if not (self.whole_episodes and rows.fits[idx]):  # a window: the relabels that demonstrate its last keyframe
-            relabels = [r for r in relabels if r[0] > idx - rows.first[idx]]
+        first = int(rows.first[idx])
+        # A window keeps its frames: only the relabels whose keyframes hold its last one.
+        relabels = [r for r in self.relabels.get(int(rows.episode[idx]), ()) if whole or r[0] > idx - first]
         instructions = None
         if relabels and float(torch.rand(())) < self.relabel_probability:
             n, instructions = relabels[int(torch.randint(len(relabels), ()))]
-            idx = min(idx, int(rows.first[idx]) + n - 1)  # a whole episode ends at the relabel's n-th keyframe
+            idx = min(idx, first + n - 1)  # a whole episode ends at the relabel's n-th keyframe
         item = super().get_item(idx)
         alternatives = instructions or self.paraphrases.get(item["task"])
         if alternatives:
