@@ -399,7 +399,7 @@ def test_config_rejects_bad_values():
         HiveformerConfig(hidden_dim=60, num_heads=8, device="cpu")
     with pytest.raises(ValueError, match="IDENTITY"):
         HiveformerConfig(normalization_mapping={"STATE": "MEAN_STD"}, device="cpu")
-    with pytest.raises(ValueError, match="lr_schedule must be one of constant, cosine; got 'linear'"):
+    with pytest.raises(ValueError, match="lr_schedule must be one of constant, cosine, constant_then_cosine; got 'linear'"):
         HiveformerConfig(lr_schedule="linear", device="cpu")
     with pytest.raises(ValueError, match="history_cache_mib must be >= 0, got -1"):
         HiveformerConfig(history_cache_mib=-1, device="cpu")
@@ -639,6 +639,18 @@ def test_warmup_ramps_the_rate_up_before_the_cosine_anneals_it(tiny_dataset_root
     with pytest.raises(ValueError, match="lr_warmup_steps must be >= 0, and 0 unless lr_schedule='cosine'; got 10 "
                                          "with lr_schedule='constant'"):
         HiveformerConfig(lr_warmup_steps=10, device="cpu")
+
+
+def test_constant_then_cosine_holds_the_rate_then_anneals_it_over_the_last_steps(tiny_dataset_root):
+    policy = make_tiny_policy(tiny_dataset_root)
+    config = HiveformerConfig(lr_schedule="constant_then_cosine", lr_decay_fraction=0.25, device="cpu")
+    assert config.get_scheduler_preset().type == "constant_then_cosine"
+    rates = learning_rates(policy, config, steps=200)
+    assert rates[:151] == [pytest.approx(1e-3)] * 151  # held for the first 150 steps (and the decay's step 0)
+    assert rates[175] == pytest.approx(5e-4) and rates[-1] < 1e-6  # half-way through the last 50: half the rate
+    assert all(a > b for a, b in zip(rates[150:], rates[151:]))
+    with pytest.raises(ValueError, match=r"lr_decay_fraction must be in \(0, 1\], got 0"):
+        HiveformerConfig(lr_schedule="constant_then_cosine", lr_decay_fraction=0, device="cpu")
 
 
 def test_minilm_is_a_real_pretrained_encoder_that_needs_no_download(tiny_dataset_root):
