@@ -35,6 +35,8 @@ def test_unseen_reference_run_trains_on_paper_train_ids_and_curves_the_unseen_sp
     config = json.loads((checkpoint / "config.json").read_text())  # the unseen recipe, but for --train-arg's key
     assert config["stem_point_cloud"] is False and config["whole_episodes"] is True
     assert config["instruction_position_embeddings"] is True and config["optimizer_lr"] == 2e-3
+    assert config["lr_schedule"] == "constant_then_cosine"
+    assert json.loads((checkpoint / "train_config.json").read_text())["scheduler"]["type"] == "constant_then_cosine"
     assert config["text_encoder"] == "minilm_words" and config["n_history"] == 10
     splits = summary["results"]["splits"]
     assert {"train", "test_unseen_synthetic", "test_unseen_corrupted", "test_unseen_human"} <= set(splits)
