@@ -57,8 +57,8 @@ class ConstantThenCosineSchedulerConfig(LRSchedulerConfig):
         decay_steps = max(1, num_training_steps - decay_start)
 
         def factor(step: int) -> float:
-            progress = max(0, step - decay_start) / decay_steps
-            return max(0.0, 0.5 * (1.0 + math.cos(math.pi * min(1.0, progress))))
+            progress = min(1.0, max(0, step - decay_start) / decay_steps)
+            return 0.5 * (1.0 + math.cos(math.pi * progress))
 
         return LambdaLR(optimizer, factor)
 
