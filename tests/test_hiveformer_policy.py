@@ -28,6 +28,7 @@ from lerobot_policy_hiveformer.modeling_hiveformer import (
     PackedSteps,
     block_causal_mask,
     gripper_mark,
+    heatmap_cross_entropy,
     keyframe_observations,
     project_to_pixels,
     quaternion_loss,
@@ -292,6 +293,7 @@ def test_save_and_load_give_identical_outputs(tiny_dataset_root, tmp_path):
         {"stem_point_cloud": True},
         {"instruction_layers": 1},
         {"instruction_feature_norm": True},
+        {"heatmap_loss_weight": 0.1},
     ],
 )
 def test_ablations_train_and_act(tiny_dataset_root, ablation):
@@ -368,6 +370,38 @@ def test_instruction_feature_norm_projects_each_token_standardised(tiny_dataset_
         assert torch.allclose(tokens, rescaled, rtol=1e-2, atol=1e-2)  # equal but for eps against the variance
         content, raw_content = (tokens - positions - projection.bias), (projection(features) - projection.bias)
         assert content[0, :-1].std() > 10 * raw_content[0, :-1].std()
+
+
+def test_heatmap_cross_entropy_targets_the_valid_pixels_nearest_the_target():
+    """Against a target at one pixel's point and a narrow Gaussian, the loss is that pixel's cross-entropy; a pixel
+    without depth takes no part even where its (zero) point is the target; the gradient raises the pixels near
+    the target and lowers the others."""
+    points = torch.zeros(1, 2, 3, 2, 2)
+    points[0, :, 0] = torch.arange(8.0).view(2, 2, 2) / 10  # x = 0.0 ... 0.7 m
+    valid = torch.ones(1, 2, 2, 2, dtype=torch.bool)
+    valid[0, 0, 0, 0] = False  # x = 0.0, where the second target is
+    logits = torch.randn(1, 2, 2, 2, requires_grad=True)
+    near_pixel_3 = torch.tensor([[0.3, 0.0, 0.0]])
+    loss = heatmap_cross_entropy(logits, points, valid, near_pixel_3, sigma=0.01)
+    assert torch.allclose(loss, torch.nn.functional.cross_entropy(logits.view(1, -1), torch.tensor([3])))
+    (gradient,) = torch.autograd.grad(loss.sum(), logits)
+    assert gradient.view(-1)[3] < 0 and (gradient.view(-1)[[1, 2, 4, 5, 6, 7]] > 0).all()
+    masked_logits = logits.detach().masked_fill(~valid, torch.finfo(logits.dtype).min)
+    at_invalid_pixel = heatmap_cross_entropy(masked_logits, points, valid, torch.zeros(1, 3), sigma=0.01)
+    assert torch.allclose(at_invalid_pixel, torch.nn.functional.cross_entropy(masked_logits.view(1, -1), torch.tensor([1])))
+
+
+def test_heatmap_loss_is_added_to_the_total_only_when_weighted(tiny_dataset_root):
+    batch = history_batch(tiny_dataset_root, make_tiny_policy(tiny_dataset_root).config, [1, 8])
+    torch.manual_seed(0)
+    _, plain = make_tiny_policy(tiny_dataset_root).eval().forward(batch)
+    torch.manual_seed(0)
+    _, weighted = make_tiny_policy(tiny_dataset_root, heatmap_loss_weight=0.5).eval().forward(batch)
+    assert "heatmap_loss" not in plain and weighted["heatmap_loss"] > 0
+    assert weighted["position_loss"] == pytest.approx(plain["position_loss"])
+    assert weighted["total_loss"] == pytest.approx(plain["total_loss"] + 0.5 * weighted["heatmap_loss"])
+    with pytest.raises(ValueError, match="heatmap_loss_sigma > 0, got 0.1 and 0.0"):
+        HiveformerConfig(heatmap_loss_weight=0.1, heatmap_loss_sigma=0.0, device="cpu")
 
 
 def test_n_history_defaults_to_the_longest_episode_of_the_dataset(tiny_dataset_root):

@@ -169,6 +169,14 @@ class HiveformerConfig(PreTrainedConfig):
     position_loss_weight: float = 1.0
     rotation_loss_weight: float = 1.0
     gripper_loss_weight: float = 1.0
+    # Weight of a fourth loss, not the authors': the cross-entropy of the pixel attention against a target
+    # distribution over the valid pixels of all cameras, each pixel weighted by a Gaussian of its world point's
+    # distance to the target position (standard deviation `heatmap_loss_sigma`, metres). The position loss
+    # alone (the squared error of the attention-weighted point) has a plateau where the attention points
+    # between the scene's candidates, and its gradient towards the right one is small there; the
+    # cross-entropy raises every pixel near the target directly. 0: off (the authors').
+    heatmap_loss_weight: float = 0.0
+    heatmap_loss_sigma: float = 0.02
 
     # AdamW preset, the authors' (train.py): lr 1e-3, weight decay 5e-4 except on biases and normalisation
     # layers (see HiveformerPolicy.get_optim_params), no gradient clipping (0 = off). The authors' batch is
@@ -229,6 +237,11 @@ class HiveformerConfig(PreTrainedConfig):
             raise ValueError(f"attention_dropout must be in [0, 1), got {self.attention_dropout}.")
         if not 0.0 <= self.relabel_probability <= 1.0:
             raise ValueError(f"relabel_probability must be in [0, 1], got {self.relabel_probability}.")
+        if self.heatmap_loss_weight < 0 or self.heatmap_loss_sigma <= 0:
+            raise ValueError(
+                f"heatmap_loss_weight must be >= 0 and heatmap_loss_sigma > 0, got {self.heatmap_loss_weight} "
+                f"and {self.heatmap_loss_sigma}."
+            )
         if self.attention_temperature <= 0:
             raise ValueError(f"attention_temperature must be > 0, got {self.attention_temperature}.")
         if not 0 < self.augmentation_min_scale <= self.augmentation_max_scale:

@@ -99,6 +99,16 @@ def gripper_mark(gripper_xyz: Tensor, calibration: Tensor, height: int, width: i
     return mark.view(*u.shape, 1, height, width)
 
 
+def heatmap_cross_entropy(logits: Tensor, points: Tensor, valid: Tensor, target: Tensor, sigma: float) -> Tensor:
+    """(M,) cross-entropy of the pixel attention (`logits` (M, C, H, W)) against the distribution over the valid
+    pixels (`valid` (M, C, H, W)) of a Gaussian of each pixel's world point (`points` (M, C, 3, H, W)) distance to
+    the target position (`target` (M, 3)), standard deviation `sigma` metres."""
+    squared_distance = (points - target[:, None, :, None, None]).square().sum(2)  # (M, C, H, W)
+    wanted = (-squared_distance / (2 * sigma**2)).masked_fill(~valid, float("-inf")).flatten(1).softmax(-1)
+    log_attention = logits.flatten(1).log_softmax(-1).masked_fill(~valid.flatten(1), 0.0)  # 0 * log(0) = 0
+    return -(wanted * log_attention).sum(-1)
+
+
 def quaternion_loss(predicted: Tensor, target: Tensor) -> Tensor:
     """Squared error to the closer of q and -q (both describe the same rotation). (..., 4) -> (...)."""
     direct = ((predicted - target) ** 2).sum(-1)
@@ -812,6 +822,7 @@ class KeyframePrediction:
     quaternion: Tensor  # (..., 4) unit, [qx, qy, qz, qw]
     open_logit: Tensor  # (...)
     pixel_attention: Tensor  # (..., C, H, W): softmax over all pixels of all cameras
+    pixel_logits: Tensor  # (..., C, H, W): its logits (temperature applied; pixels without depth at the minimum)
 
     def action(self) -> Tensor:
         """(..., 8) = [x, y, z, qx, qy, qz, qw, open] with open thresholded to 0/1."""
@@ -994,6 +1005,7 @@ class HiveformerModel(nn.Module):
         # Pixels without depth have no 3D point to point at.
         logits = logits.masked_fill(~valid, torch.finfo(logits.dtype).min)
         attention = logits.softmax(-1).view(-1, cameras, height, width)  # (M, C, H, W)
+        logits = logits.view(attention.shape)
         attended_point = torch.einsum("mchw,mckhw->mk", attention, obs.pixels(obs.points, decode))  # (M, 3)
 
         pooled = self.rotation_gripper_cnn(camera_grids).amax(dim=(-2, -1))  # (M*C, D)
@@ -1004,6 +1016,7 @@ class HiveformerModel(nn.Module):
             quaternion=F.normalize(head[:, 3:7], dim=-1),
             open_logit=head[:, 7],
             pixel_attention=attention,
+            pixel_logits=logits,
         )
 
     def forward(
@@ -1135,9 +1148,18 @@ class HiveformerPolicy(PreTrainedPolicy):
             + self.config.rotation_loss_weight * rotation_loss
             + self.config.gripper_loss_weight * gripper_loss
         )
-        names = ("position_loss", "rotation_loss", "gripper_loss", "total_loss")
-        values = torch.stack([position_loss, rotation_loss, gripper_loss, loss]).detach().tolist()  # one sync
-        return loss, dict(zip(names, values, strict=True))
+        names = ["position_loss", "rotation_loss", "gripper_loss"]
+        losses = [position_loss, rotation_loss, gripper_loss]
+        if self.config.heatmap_loss_weight:
+            heatmap_loss = heatmap_cross_entropy(
+                prediction.pixel_logits, obs.pixels(obs.points, supervised), obs.pixels(obs.valid_pixels, supervised),
+                target[:, :3], self.config.heatmap_loss_sigma,
+            ).sum() / count
+            loss = loss + self.config.heatmap_loss_weight * heatmap_loss
+            names.append("heatmap_loss")
+            losses.append(heatmap_loss)
+        values = torch.stack([*losses, loss]).detach().tolist()  # one sync
+        return loss, dict(zip([*names, "total_loss"], values, strict=True))
 
     @torch.inference_mode()
     def predict_action_chunk(self, batch: dict) -> Tensor:
