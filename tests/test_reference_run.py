@@ -35,7 +35,7 @@ def test_unseen_reference_run_trains_on_paper_train_ids_and_curves_the_unseen_sp
     config = json.loads((checkpoint / "config.json").read_text())  # the unseen recipe, but for --train-arg's key
     assert config["stem_point_cloud"] is False and config["whole_episodes"] is True
     assert config["instruction_position_embeddings"] is True and config["optimizer_lr"] == 2e-3
-    assert config["lr_schedule"] == "constant_then_cosine"
+    assert config["lr_schedule"] == "constant_then_cosine" and config["heatmap_loss_weight"] == 0.1
     assert json.loads((checkpoint / "train_config.json").read_text())["scheduler"]["type"] == "constant_then_cosine"
     assert config["text_encoder"] == "minilm_words" and config["n_history"] == 10
     splits = summary["results"]["splits"]
@@ -133,6 +133,8 @@ def test_make_reference_pins_its_recipe_and_train_arguments_replace_settings(tmp
     command = hiveformer_run_command(unseen, tmp_path / "train", tmp_path / "out")
     assert set(policy_flags(UNSEEN_RECIPE)) <= set(command) and "--policy.instruction_position_embeddings=false" not in command
     assert "--policy.stem_point_cloud=false" in command and "--policy.stem_point_cloud=true" not in command
+    assert "--policy.heatmap_loss_weight=0.1" in command  # the heatmap loss: unseen only
+    assert "--policy.heatmap_loss_weight=0.1" not in hiveformer_run_command(run, tmp_path / "train", tmp_path / "out")
     assert "--policy.optimizer_lr=0.002" in command and "--policy.optimizer_lr=0.002" not in hiveformer_run_command(
         run, tmp_path / "train", tmp_path / "out")  # make reference keeps the plugin's rate
 
