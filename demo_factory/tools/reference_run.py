@@ -103,8 +103,9 @@ RECIPE = {"whole_episodes": False, "stem_point_cloud": True}
 # (constant_then_cosine): seeds 2 / 1000 / 3 scored 100.0 / 80.0 / 77.5 % seen and 55.0 / 32.5 / 45.0 % unseen
 # synthetic, seeds 1000 and 3 still rising at 8000 steps (README, unseen). The plateau (position loss ~0.005 until
 # ~4,000-5,000 steps, the attention between the buttons) ends by ~1,500 with the heatmap cross-entropy beside the
-# authors' losses (heatmap_loss_weight 0.1): seed 1000 scored 100.0 % seen and 77.5 % unseen synthetic (80.0 / 32.5
-# without it), its position loss at 0.001 by ~2,100 steps (README, unseen).
+# authors' losses (heatmap_loss_weight 0.1): seeds 1000 / 2 / 3 scored 100.0 / 97.5 / 90.0 % seen and 77.5 / 85.0 /
+# 67.5 % unseen synthetic (80.0 / 100.0 / 77.5 and 32.5 / 55.0 / 45.0 without it), their position loss at 0.001 by
+# ~2,100-2,400 steps (README, unseen).
 UNSEEN_RECIPE = RECIPE | {"stem_point_cloud": False, "optimizer_lr": 2e-3, "lr_schedule": "constant_then_cosine",
                           "heatmap_loss_weight": 0.1}
 # `make reference`: without instruction position embeddings. Its last checkpoint scored 97.5 / 52.5 /
