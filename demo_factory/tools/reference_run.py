@@ -93,19 +93,13 @@ UNSEEN = {"episodes_per_variation": 6, "test_episodes_per_variation": 1,
 CURVE_SPLITS = {False: ("train",), True: ("train", "test_unseen_synthetic")}
 # Windows ending at every frame and the 7-channel CNN stem (HiveformerConfig fields).
 RECIPE = {"whole_episodes": False, "stem_point_cloud": True}
-# `make reference-unseen`: windows ending at every frame, the authors' 4-channel CNN stem, the instruction position
-# embeddings that tell "red, then blue" from "blue, then red", at a constant learning rate of 2e-3: at 1e-3 training
-# spent its first ~5000 steps on a plateau (validation near 0 %), at 2e-3 ~3500. With the 7-channel stem seeds
-# 1000 / 2 / 3 scored 92.5 / 62.5 / 92.5 % seen and 67.5 / 17.5 / 62.5 % unseen synthetic, with the 4-channel one
-# 92.5 / 85.0 / 82.5 % and 55.0 / 50.0 / 45.0 %: two seeds of three each, the worst seed far nearer the
-# targets; re-run with a plugin that differs by float rounding, seeds 2 / 1000 scored 92.5 / 60.0 % seen and 32.5 /
-# 37.5 % unseen. The rate is held through the plateau and annealed to 0 over the last 3000 steps
-# (constant_then_cosine): seeds 2 / 1000 / 3 scored 100.0 / 80.0 / 77.5 % seen and 55.0 / 32.5 / 45.0 % unseen
-# synthetic, seeds 1000 and 3 still rising at 8000 steps (README, unseen). The plateau (position loss ~0.005 until
-# ~4,000-5,000 steps, the attention between the buttons) ends by ~1,500 with the heatmap cross-entropy beside the
-# authors' losses (heatmap_loss_weight 0.1): seeds 1000 / 2 / 3 scored 100.0 / 97.5 / 90.0 % seen and 77.5 / 85.0 /
-# 67.5 % unseen synthetic (80.0 / 100.0 / 77.5 and 32.5 / 55.0 / 45.0 without it), their position loss at 0.001 by
-# ~2,100-2,400 steps (README, unseen).
+# `make reference-unseen`: windows ending at every frame, the authors' 4-channel CNN stem, the plugin's instruction
+# position embeddings, a learning rate of 2e-3
+# held through the early plateau (position loss ~0.005, the attention between the buttons) and annealed to 0 over the
+# last 3000 steps (constant_then_cosine), and the heatmap cross-entropy beside the authors' losses, which ends that
+# plateau at ~1,500 steps instead of ~4,000-5,000: seeds 1000 / 2 / 3 scored 100.0 / 97.5 / 90.0 % seen and
+# 77.5 / 85.0 / 67.5 % unseen synthetic (without it 80.0 / 100.0 / 77.5 and 32.5 / 55.0 / 45.0; every setting
+# tried, with its seeds, in README, unseen).
 UNSEEN_RECIPE = RECIPE | {"stem_point_cloud": False, "optimizer_lr": 2e-3, "lr_schedule": "constant_then_cosine",
                           "heatmap_loss_weight": 0.1}
 # `make reference`: without instruction position embeddings. Its last checkpoint scored 97.5 / 52.5 /
