@@ -94,10 +94,9 @@ CURVE_SPLITS = {False: ("train",), True: ("train", "test_unseen_synthetic")}
 # Windows ending at every frame and the 7-channel CNN stem (HiveformerConfig fields).
 RECIPE = {"whole_episodes": False, "stem_point_cloud": True}
 # `make reference-unseen`: windows ending at every frame, the authors' 4-channel CNN stem, the plugin's instruction
-# position embeddings, a learning rate of 2e-3
-# held through the early plateau (position loss ~0.005, the attention between the buttons) and annealed to 0 over the
-# last 3000 steps (constant_then_cosine), and the heatmap cross-entropy beside the authors' losses, which ends that
-# plateau at ~1,500 steps instead of ~4,000-5,000: seeds 1000 / 2 / 3 scored 100.0 / 97.5 / 90.0 % seen and
+# position embeddings, a learning rate of 2e-3 held through the early plateau (position loss ~0.005, the attention
+# between the buttons) and annealed to 0 over the last 3000 steps (constant_then_cosine), and the heatmap
+# cross-entropy beside the authors' losses, which ends that plateau at ~1,500 steps instead of ~4,000-5,000: seeds 1000 / 2 / 3 scored 100.0 / 97.5 / 90.0 % seen and
 # 77.5 / 85.0 / 67.5 % unseen synthetic (without it 80.0 / 100.0 / 77.5 and 32.5 / 55.0 / 45.0; every setting
 # tried, with its seeds, in README, unseen).
 UNSEEN_RECIPE = RECIPE | {"stem_point_cloud": False, "optimizer_lr": 2e-3, "lr_schedule": "constant_then_cosine",
