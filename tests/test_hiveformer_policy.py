@@ -17,11 +17,12 @@ from hiveformer_fixtures import (
 )
 from lerobot.policies.factory import make_policy, make_pre_post_processors
 from lerobot_policy_hiveformer import HiveformerConfig, HiveformerPolicy, modeling_hiveformer
+from lerobot_policy_hiveformer.group_norm import GroupNormLeakyReLU
 from lerobot_policy_hiveformer.modeling_hiveformer import (
     BlockCausalLayer,
-    ChannelsLastGroupNorm,
     ClipInstructionEncoder,
     ConvBlock,
+    LEAKY_SLOPE,
     Dropout,
     KeyframeObservations,
     MultiHeadAttention,
@@ -466,8 +467,8 @@ def test_training_decodes_only_supervised_steps_with_the_same_predictions(tiny_d
 
 def test_gradients_reach_every_feature_map_channels_last(tiny_dataset_root):
     """The feature maps are channels-last; their gradients must be too (the encoder's skips are selected for
-    the supervised steps only), since LeakyReLU's and GroupNorm's backward passes on mixed layouts are ~8x
-    slower."""
+    the supervised steps only), since LeakyReLU's backward pass on mixed layouts is ~8x slower and GroupNorm's
+    compiled one takes channels-last gradients (others are copied)."""
     policy = make_tiny_policy(tiny_dataset_root).train()
     batch = history_batch(tiny_dataset_root, policy.config, [0, 1, 7])  # a selection: 4 of 6 real steps
     layouts = {}
@@ -483,7 +484,7 @@ def test_gradients_reach_every_feature_map_channels_last(tiny_dataset_root):
             module.register_forward_hook(record_gradient_layout(name))
     loss, _ = policy.forward(batch)
     loss.backward()
-    assert len(layouts) == 2 + 2 * 4 + 2 * 4  # stem, encoder and decoder blocks
+    assert len(layouts) == 2 + 4 + 4  # the stem's two LeakyReLUs, the encoder's and decoder's blocks
     assert all(layouts.values()), [name for name, channels_last in layouts.items() if not channels_last]
 
 
@@ -591,27 +592,31 @@ def test_rescaled_maps_are_the_cameras_resized_padded_and_cropped(tiny_dataset_r
         assert out.mark.sum() > 0  # the gripper is seen
 
 
-@pytest.mark.parametrize("shape", [(6, 16, 64, 64), (40, 16, 8, 8), (2, 16, 4, 4)])
-def test_channels_last_group_norm_equals_pytorchs(shape):
-    """Same values and gradients (input, weight, bias) as F.group_norm, channels-last in and out; small maps
-    and NCHW maps take PyTorch's kernel."""
+@pytest.mark.parametrize("shape", [(6, 16, 64, 64), (40, 16, 8, 8), (2, 16, 4, 4), (3, 64, 4, 4), (1, 16, 1, 1)])
+def test_group_norm_leaky_relu_equals_pytorchs(shape):
+    """Same values and gradients (input, weight, bias) as F.group_norm then F.leaky_relu, channels-last in and out
+    (the compiled kernels) and NCHW (PyTorch's), with and without autograd."""
     torch.manual_seed(0)
-    norm = ChannelsLastGroupNorm(num_groups=4, num_channels=shape[1])
+    layer = GroupNormLeakyReLU(num_groups=4, num_channels=shape[1], negative_slope=LEAKY_SLOPE)
     with torch.no_grad():
-        norm.weight.normal_()
-        norm.bias.normal_()
+        layer.weight.normal_()
+        layer.bias.normal_()
     for memory_format in (torch.channels_last, torch.contiguous_format):
         x = (torch.randn(shape) * 3 + 1).contiguous(memory_format=memory_format).requires_grad_()
         grad = torch.randn(shape).contiguous(memory_format=memory_format)
-        out = norm(x)
-        expected = torch.nn.functional.group_norm(x, 4, norm.weight, norm.bias, norm.eps)
+        out = layer(x)
+        normalised = torch.nn.functional.group_norm(x, 4, layer.weight, layer.bias, layer.eps)
+        expected = torch.nn.functional.leaky_relu(normalised, LEAKY_SLOPE)
         assert torch.allclose(out, expected, atol=1e-5)
         assert out.is_contiguous(memory_format=memory_format)
-        grads = torch.autograd.grad(out, (x, norm.weight, norm.bias), grad)
-        expected_grads = torch.autograd.grad(expected, (x, norm.weight, norm.bias), grad)
+        with torch.inference_mode():
+            assert torch.allclose(layer(x.detach()), expected, atol=1e-5)
+        grads = torch.autograd.grad(out, (x, layer.weight, layer.bias), grad)
+        expected_grads = torch.autograd.grad(expected, (x, layer.weight, layer.bias), grad)
         for got, want in zip(grads, expected_grads, strict=True):
             assert torch.allclose(got, want, rtol=1e-4, atol=1e-4 * float(want.abs().max()))
         assert grads[0].is_contiguous(memory_format=memory_format)
+    assert (out < 0).any() and (out > 0).any()  # both sides of the activation were exercised
 
 
 def test_conv_block_of_concatenation_equals_the_block_on_the_concatenation():

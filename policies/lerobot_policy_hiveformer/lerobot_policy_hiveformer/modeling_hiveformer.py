@@ -29,13 +29,12 @@ from .configuration_hiveformer import (
     IMAGES_PREFIX,
     HiveformerConfig,
 )
+from .group_norm import GroupNormLeakyReLU
 
 ENCODER_CHANNELS = 16
 LEAKY_SLOPE = 0.02
 # The head dimension below which attention is zero-padded on CPU (see MultiHeadAttention).
 FUSED_CPU_MIN_HEAD_DIM = 16
-# Values in a map below which ChannelsLastGroupNorm leaves it to PyTorch's kernel (its own Python costs ~1 ms).
-CHANNELS_LAST_GROUP_NORM_MIN_SIZE = 2**16
 
 # --- Geometry: pure functions ----------------------------------------------------------------------
 
@@ -436,79 +435,13 @@ def make_instruction_encoder(config: HiveformerConfig) -> InstructionEncoder:
 # --- Network --------------------------------------------------------------------------------------
 
 
-class ChannelsLastGroupNorm(nn.GroupNorm):
-    """`nn.GroupNorm` (same parameters, same values) that runs channels-last CPU maps as a few passes over
-    their (N, H*W, C) matrix. PyTorch's CPU kernel for that layout is 2-5x slower than for NCHW, forward
-    and backward, at HiveFormer's 16-channel maps (README, benchmarks); converting to NCHW and back costs
-    as much as it saves. Other inputs take PyTorch's kernel."""
-
-    def forward(self, x: Tensor) -> Tensor:
-        if (x.device.type != "cpu" or x.dim() != 4 or x.numel() < CHANNELS_LAST_GROUP_NORM_MIN_SIZE
-                or not x.is_contiguous(memory_format=torch.channels_last)):
-            return super().forward(x)
-        return _ChannelsLastGroupNorm.apply(x, self.num_groups, self.weight, self.bias, self.eps)
-
-
-class _ChannelsLastGroupNorm(torch.autograd.Function):
-    """GroupNorm of a channels-last (N, C, H, W) map with per-channel affine weight and bias.
-
-    Statistics come from per-channel sums over the pixels (reductions over the matrix's rows, which run
-    vectorised over its contiguous channels); the output and the input's gradient are each one or two
-    broadcast multiply-adds with per-(sample, channel) coefficients.
-    """
-
-    @staticmethod
-    def forward(ctx, x: Tensor, groups: int, weight: Tensor, bias: Tensor, eps: float) -> Tensor:
-        n, c, h, w = x.shape
-        per_group = c // groups
-        rows = x.permute(0, 2, 3, 1).reshape(n, h * w, c)  # a view of the channels-last memory
-        count = h * w * per_group
-        mean = rows.sum(1).view(n, groups, per_group).sum(2) / count  # (n, groups)
-        square_mean = (rows * rows).sum(1).view(n, groups, per_group).sum(2) / count
-        # E[x²] - E[x]² in float32 (PyTorch's kernel runs Welford's update): exact to ~1e-7 of E[x²], ample
-        # for convolution outputs, whose means are within a few standard deviations of 0 (tests: 1e-5).
-        rstd = (square_mean - mean * mean).clamp_min(0).add(eps).rsqrt()
-        scale = rstd.repeat_interleave(per_group, 1) * weight  # (n, c)
-        shift = bias - mean.repeat_interleave(per_group, 1) * scale
-        ctx.save_for_backward(x, weight, mean, rstd)
-        ctx.groups = groups
-        out = torch.empty_like(x)  # channels-last like x; written through its (n, h*w, c) view, returned whole
-        torch.addcmul(shift.unsqueeze(1), rows, scale.unsqueeze(1), out=out.permute(0, 2, 3, 1).view(n, h * w, c))
-        return out  # not a view, so that LeakyReLU may run in place on it
-
-    @staticmethod
-    def backward(ctx, grad_output: Tensor):
-        x, weight, mean, rstd = ctx.saved_tensors
-        n, c, h, w = x.shape
-        groups = ctx.groups
-        per_group = c // groups
-        rows = x.permute(0, 2, 3, 1).reshape(n, h * w, c)
-        grad_rows = grad_output.permute(0, 2, 3, 1).reshape(n, h * w, c)  # copies only if not channels-last
-        grad_sum = grad_rows.sum(1)  # (n, c)
-        grad_dot_x = (grad_rows * rows).sum(1)  # (n, c)
-        group_mean, group_rstd = mean.repeat_interleave(per_group, 1), rstd.repeat_interleave(per_group, 1)
-        grad_dot_normalised = group_rstd * (grad_dot_x - group_mean * grad_sum)  # (n, c): sum of grad * x_hat
-        count = h * w * per_group
-        # dx = rstd * (dy * weight - mean(dy * weight) - x_hat * mean(dy * weight * x_hat)), means per group.
-        mean_grad = (weight * grad_sum).view(n, groups, per_group).sum(2) / count  # (n, groups)
-        mean_grad_normalised = (weight * grad_dot_normalised).view(n, groups, per_group).sum(2) / count
-        x_coefficient = -rstd * rstd * mean_grad_normalised
-        constant = -rstd * mean_grad - mean * x_coefficient
-        grad_x = torch.addcmul(constant.repeat_interleave(per_group, 1).unsqueeze(1), rows,
-                               x_coefficient.repeat_interleave(per_group, 1).unsqueeze(1))
-        grad_x.addcmul_(grad_rows, (group_rstd * weight).unsqueeze(1))
-        grad_x = grad_x.view(n, h, w, c).permute(0, 3, 1, 2)
-        return grad_x, None, grad_dot_normalised.sum(0), grad_sum.sum(0), None
-
-
 class ConvBlock(nn.Sequential):
     """3x3 convolution + GroupNorm + LeakyReLU, as in the supplement's UNet."""
 
     def __init__(self, in_channels: int, out_channels: int, stride: int = 1):
         super().__init__(
             nn.Conv2d(in_channels, out_channels, kernel_size=3, stride=stride, padding=1),
-            ChannelsLastGroupNorm(num_groups=4, num_channels=out_channels),
-            nn.LeakyReLU(LEAKY_SLOPE, inplace=True),
+            GroupNormLeakyReLU(num_groups=4, num_channels=out_channels, negative_slope=LEAKY_SLOPE),
         )
 
 
