@@ -259,9 +259,11 @@ def resample(x: Tensor, source: Tensor) -> Tensor:
 def take_steps(x: Tensor, steps: Tensor, leading_dims: int = 2) -> Tensor:
     """x[steps] for a bool mask over x's leading dims, e.g. (B, T, ...) -> (M, ...).
 
-    Without a copy when every step is taken (the common case of a window without padding).
+    Without a copy when every step is taken (the common case of a window without padding). The rows are taken
+    with `index_select`, whose gradient is an `index_add` (a boolean mask's is a serial scatter on CPU).
     """
-    return x.flatten(0, leading_dims - 1) if bool(steps.all()) else x[steps]
+    rows = x.flatten(0, leading_dims - 1)
+    return rows if bool(steps.all()) else rows.index_select(0, steps.flatten().nonzero().squeeze(1))
 
 
 # --- Instruction encoders -------------------------------------------------------------------------
@@ -574,8 +576,10 @@ class MultiHeadAttention(nn.Module):
             return self._output(self._attend(q, k, v, key_mask), x.shape)
         # Keys of each sample (ranked as `packing`): its instruction, then its steps in order; positions past
         # a sample's last step stay zero and no query reaches them.
-        aligned = kv.new_zeros(packing.batch, steps, *kv.shape[1:]).index_put((packing.rank, packing.ordinal), kv)
-        keys = torch.cat([instruction_kv[packing.order], aligned.flatten(1, 2)], dim=1)  # (B, L + T*N, 2D)
+        rows = packing.rank * steps + packing.ordinal  # each packed step's row of the ranked samples' B*T steps
+        aligned = kv.new_zeros(packing.batch * steps, *kv.shape[1:]).index_copy(0, rows, kv)
+        aligned = aligned.view(packing.batch, -1, kv.shape[-1])  # (B, T*N, 2D)
+        keys = torch.cat([instruction_kv[packing.order], aligned], dim=1)  # (B, L + T*N, 2D)
         k, v = self._heads(keys, 2)  # (B, heads, L + T*N, head_dim)
         length = instruction.shape[1]
         bounds = [(count, length + (ordinal + 1) * per_step) for ordinal, count in enumerate(packing.counts)]
@@ -899,10 +903,11 @@ class HiveformerModel(nn.Module):
         layers = self.layers[:-1] if last_step_only else self.layers
         if layers:  # on the real steps only, packed; padding steps come back as zeros (nothing attends to them)
             packing = PackedSteps.of(step_valid)
-            packed = x[packing.sample, packing.step]  # (M, N, D)
+            rows = packing.sample * steps + packing.step  # each packed step's row of the window's B*T steps
+            packed = x.flatten(0, 1).index_select(0, rows)  # (M, N, D)
             for layer in layers if packing.counts else ():
                 packed = layer.forward_packed(packed, instruction_tokens, instruction_mask, packing)
-            x = x.new_zeros(x.shape).index_put((packing.sample, packing.step), packed)
+            x = x.new_zeros(x.flatten(0, 1).shape).index_copy(0, rows, packed).view(x.shape)
         if not last_step_only:
             return x
         allowed = block_causal_mask(step_valid, instruction_mask, x.shape[2], self.config.use_history,
