@@ -17,7 +17,7 @@ from hiveformer_fixtures import (
 )
 from lerobot.policies.factory import make_policy, make_pre_post_processors
 from lerobot_policy_hiveformer import HiveformerConfig, HiveformerPolicy, modeling_hiveformer
-from lerobot_policy_hiveformer.group_norm import GroupNormLeakyReLU
+from lerobot_policy_hiveformer.cpu_kernels import GroupNormLeakyReLU, stem_input
 from lerobot_policy_hiveformer.modeling_hiveformer import (
     BlockCausalLayer,
     ClipInstructionEncoder,
@@ -617,6 +617,20 @@ def test_group_norm_leaky_relu_equals_pytorchs(shape):
             assert torch.allclose(got, want, rtol=1e-4, atol=1e-4 * float(want.abs().max()))
         assert grads[0].is_contiguous(memory_format=memory_format)
     assert (out < 0).any() and (out > 0).any()  # both sides of the activation were exercised
+
+
+@pytest.mark.parametrize("with_points", [True, False])
+def test_stem_input_interleaves_the_maps_channels_last(with_points):
+    """The compiled assembly gives the values of scaling the colour and concatenating the maps channels-last."""
+    torch.manual_seed(0)
+    rgb, points, mark = torch.rand(4, 3, 3, 8, 6), torch.randn(4, 3, 3, 8, 6), (torch.rand(4, 3, 1, 8, 6) > 0.9).float()
+    parts = [rgb * 2 - 1, *([points] if with_points else []), mark]
+    expected = torch.cat(parts, dim=2).flatten(0, 1)  # (M*C, k, H, W)
+    got = stem_input(rgb, points if with_points else None, mark)
+    assert got.shape == expected.shape == (12, 7 if with_points else 4, 8, 6)
+    assert torch.equal(got, expected) and got.is_contiguous(memory_format=torch.channels_last)
+    with_grad = stem_input(rgb.requires_grad_(), points if with_points else None, mark)  # PyTorch's path
+    assert torch.equal(with_grad, expected) and with_grad.is_contiguous(memory_format=torch.channels_last)
 
 
 def test_conv_block_of_concatenation_equals_the_block_on_the_concatenation():

@@ -29,7 +29,7 @@ from .configuration_hiveformer import (
     IMAGES_PREFIX,
     HiveformerConfig,
 )
-from .group_norm import GroupNormLeakyReLU
+from .cpu_kernels import GroupNormLeakyReLU, stem_input
 
 ENCODER_CHANNELS = 16
 LEAKY_SLOPE = 0.02
@@ -840,8 +840,7 @@ class HiveformerModel(nn.Module):
         # Built channels-last, (M, C, H, W, 4 or 7), viewed as (M*C, 4 or 7, H, W): oneDNN's convolutions with
         # few channels run much faster on that layout than on NCHW (which they reorder on every call),
         # and every encoder and decoder feature map inherits it.
-        channels = [obs.pixels(obs.rgb, encode) * 2 - 1, *([points] if self.config.stem_point_cloud else []), mark]
-        images = torch.cat([x.movedim(-3, -1) for x in channels], dim=-1).flatten(0, 1).permute(0, 3, 1, 2)
+        images = stem_input(obs.pixels(obs.rgb, encode), points if self.config.stem_point_cloud else None, mark)
         skips = self.encoder(images)
         bottleneck = skips[-1]  # (M*C, 16, h, w)
 
@@ -944,7 +943,9 @@ class HiveformerModel(nn.Module):
         logits = logits.masked_fill(~valid, torch.finfo(logits.dtype).min)
         attention = logits.softmax(-1).view(-1, cameras, height, width)  # (M, C, H, W)
         logits = logits.view(attention.shape)
-        attended_point = torch.einsum("mchw,mckhw->mk", attention, obs.pixels(obs.points, decode))  # (M, 3)
+        # sum over cameras and pixels of attention * point: (M, C, 3, H*W) @ (M, C, H*W, 1), no copy of the points
+        points = obs.pixels(obs.points, decode).flatten(-2)
+        attended_point = (points @ attention.flatten(-2).unsqueeze(-1)).squeeze(-1).sum(1)  # (M, 3)
 
         pooled = self.rotation_gripper_cnn(camera_grids).amax(dim=(-2, -1))  # (M*C, D)
         pooled = pooled.view(-1, cameras, dim).amax(dim=1)  # (M, D)

@@ -1,16 +1,15 @@
-"""GroupNorm followed by LeakyReLU, the UNet's normalisation and activation, as one layer whose CPU forward and
-backward passes are each one compiled loop over the maps (numba) instead of a dozen PyTorch passes.
+"""Loops compiled with numba for the CPU passes that PyTorch runs as many small operations: GroupNorm with the
+LeakyReLU after it (the UNet's normalisation and activation), forward and backward, and the assembly of the
+encoder's channels-last input. The kernels compile on first use (~3 s) and numba caches them on disk (its
+`cache=True`), so later processes load them in ~0.5 s. Other inputs (another device, dtype or layout) take
+PyTorch's operations.
 
-On channels-last CPU maps each map is an (H*W, C) matrix. The forward pass sums each channel's values and squares
-in one sweep over the map, then writes the normalised and activated values in a second; the backward pass sums the
-activation's gradient and its product with the input in one sweep, then writes the input's gradient in a second.
-One map (a 32x32 16-channel map is 64 KiB) stays in the core's cache between its two sweeps, so each pass reads
-its inputs from memory about once. PyTorch's ops take ~13 passes over the maps and ~35 operator calls for the
-same work (`make reference`'s training step: ~12-20 ms less, README "Benchmarks"). The activation is not saved:
-the backward pass recomputes its sign from the input. The kernels compile on first use (~3 s) and are cached on
-disk (numba's `cache=True`), so later processes load them in ~0.5 s.
-
-Other inputs (another device, dtype or layout) take PyTorch's `group_norm` and `leaky_relu`.
+GroupNorm + LeakyReLU: on channels-last CPU maps each map is an (H*W, C) matrix. The forward pass sums each
+channel's values and squares in one sweep over the map, then writes the normalised and activated values in a
+second; the backward pass sums the activation's gradient and its product with the input in one sweep, then writes
+the input's gradient in a second. One map (a 32x32 16-channel map is 64 KiB) stays in the core's cache between its
+two sweeps, so each pass reads its inputs from memory about once, where PyTorch's operations took ~13 passes and
+~35 operator calls per layer. The activation is not saved: the backward pass recomputes its sign from the input.
 """
 
 import numba
@@ -174,3 +173,37 @@ class GroupNormLeakyReLU(nn.GroupNorm):
 
     def extra_repr(self) -> str:
         return f"{super().extra_repr()}, negative_slope={self.negative_slope}"
+
+
+@njit(parallel=True, cache=True)
+def _interleave(rgb, points, mark, out):  # pragma: no cover (compiled)
+    """rgb (M, C, 3, H, W) in [0, 1], points (M, C, P, H, W) with P = 3 or 0, mark (M, C, 1, H, W) -> out
+    (M*C, H, W, 3 + P + 1): colour scaled to [-1, 1], then the point cloud, then the mark, per pixel."""
+    steps, cameras, _, height, width = rgb.shape
+    point_channels = points.shape[2]
+    for map_index in prange(steps * cameras):
+        m, c = map_index // cameras, map_index % cameras
+        for y in range(height):
+            for x in range(width):
+                for k in range(3):
+                    out[map_index, y, x, k] = rgb[m, c, k, y, x] * 2 - 1
+                for k in range(point_channels):
+                    out[map_index, y, x, 3 + k] = points[m, c, k, y, x]
+                out[map_index, y, x, 3 + point_channels] = mark[m, c, 0, y, x]
+
+
+def stem_input(rgb: Tensor, points: Tensor | None, mark: Tensor) -> Tensor:
+    """The encoder's input: colour in [-1, 1], the point cloud (unless None) and the gripper mark of (M, C, k, H, W)
+    maps, as (M*C, 4 or 7, H, W) channels-last. One interleaving pass on CPU; `torch.cat` of the maps moved
+    channels-last, after scaling the colour, elsewhere (and where a gradient is needed)."""
+    parts = [rgb, *([] if points is None else [points]), mark]
+    if any(x.device.type != "cpu" or x.dtype != torch.float32 or x.requires_grad for x in parts):
+        parts[0] = rgb * 2 - 1
+        return torch.cat([x.movedim(-3, -1) for x in parts], dim=-1).flatten(0, 1).permute(0, 3, 1, 2)
+    steps, cameras, _, height, width = rgb.shape
+    if points is None:
+        points = rgb.new_empty(steps, cameras, 0, height, width)
+    out = rgb.new_empty(steps * cameras, height, width, 4 + points.shape[2])
+    _use_torch_threads()
+    _interleave(rgb.numpy(), points.numpy(), mark.numpy(), out.numpy())
+    return out.permute(0, 3, 1, 2)
