@@ -785,7 +785,8 @@ def faults() -> int:
 faults()
 default = faults()
 applied = retain_freed_memory()
-faults()
+faults()  # the heap grows to hold the five tensors over the first rounds after the switch (one or two, by
+faults()  # what the imports left in it), then serves every round from memory it keeps
 print(default, applied, faults())
 """
 
