@@ -619,6 +619,19 @@ def test_group_norm_leaky_relu_equals_pytorchs(shape):
     assert (out < 0).any() and (out > 0).any()  # both sides of the activation were exercised
 
 
+def test_group_norm_leaky_relu_is_accurate_where_the_mean_dwarfs_the_spread():
+    """A map whose mean is 100 times its spread: float32 sums of E[x²] - E[x]² lose the variance there (a training
+    run's loss jumped with them); the kernels' float64 sums keep the output within PyTorch's own float32 error."""
+    torch.manual_seed(0)
+    x = torch.randn(8, 16, 32, 32, dtype=torch.float64) * 0.1 + 10
+    layer = GroupNormLeakyReLU(num_groups=4, num_channels=16, negative_slope=LEAKY_SLOPE)
+    exact = torch.nn.functional.leaky_relu(torch.nn.functional.group_norm(x, 4, layer.weight.double(),
+                                                                          layer.bias.double(), layer.eps), LEAKY_SLOPE)
+    with torch.no_grad():
+        got = layer(x.float().contiguous(memory_format=torch.channels_last))
+    assert float((got.double() - exact).abs().max()) < 1e-4
+
+
 @pytest.mark.parametrize("with_points", [True, False])
 def test_stem_input_interleaves_the_maps_channels_last(with_points):
     """The compiled assembly gives the values of scaling the colour and concatenating the maps channels-last."""

@@ -24,92 +24,97 @@ _FASTMATH = {"reassoc", "contract"}
 
 
 @njit(parallel=True, cache=True, fastmath=_FASTMATH)
-def _forward(x, weight, bias, groups, eps, slope, out, mean, rstd, scale, shift):  # pragma: no cover (compiled)
-    """x, out (N, P, C); weight, bias (C,); written for the backward pass: mean, rstd (N, groups) and each map's
-    channels' affine map to the normalised value, scale and shift (N, C)."""
+def _forward(x, weight, bias, groups, eps, slope, out, mean, rstd):  # pragma: no cover (compiled)
+    """x, out (N, P, C); weight, bias (C,); mean and rstd (N, groups) written for the backward pass.
+
+    The sums run in float64 and the map is centred before scaling, as PyTorch's Welford statistics are accurate
+    where a map's mean is large against its spread (float32 sums of E[x²] - E[x]² are not)."""
     maps, pixels, channels = x.shape
     per_group = channels // groups
     count = pixels * per_group
     for i in prange(maps):
-        total = np.zeros(channels, np.float32)
-        squares = np.zeros(channels, np.float32)
+        total = np.zeros(channels, np.float64)
+        squares = np.zeros(channels, np.float64)
         for p in range(pixels):
             for c in range(channels):
-                value = x[i, p, c]
+                value = np.float64(x[i, p, c])
                 total[c] += value
                 squares[c] += value * value
+        centre = np.empty(channels, np.float32)
+        scale = np.empty(channels, np.float32)
         for g in range(groups):
-            group_total = np.float32(0.0)
-            group_squares = np.float32(0.0)
+            group_total = 0.0
+            group_squares = 0.0
             for c in range(g * per_group, (g + 1) * per_group):
                 group_total += total[c]
                 group_squares += squares[c]
-            m = np.float32(group_total / count)
-            # E[x²] - E[x]² in float32: exact to ~1e-7 of E[x²], ample for convolution outputs, whose means are
-            # within a few standard deviations of 0 (PyTorch's kernel runs Welford's update; tests: 1e-5).
-            r = np.float32(1.0 / np.sqrt(max(group_squares / count - m * m, 0.0) + eps))
+            m = group_total / count
             mean[i, g] = m
-            rstd[i, g] = r
+            rstd[i, g] = 1.0 / np.sqrt(max(group_squares / count - m * m, 0.0) + eps)
             for c in range(g * per_group, (g + 1) * per_group):
-                scale[i, c] = r * weight[c]
-                shift[i, c] = bias[c] - m * scale[i, c]
+                centre[c] = mean[i, g]
+                scale[c] = rstd[i, g] * weight[c]
         for p in range(pixels):
             for c in range(channels):
-                y = x[i, p, c] * scale[i, c] + shift[i, c]
+                y = (x[i, p, c] - centre[c]) * scale[c] + bias[c]
                 out[i, p, c] = y if y > 0 else y * slope
 
 
 @njit(parallel=True, cache=True, fastmath=_FASTMATH)
-def _backward(grad, x, weight, groups, slope, mean, rstd, scale, shift,
+def _backward(grad, x, weight, bias, groups, slope, mean, rstd,
               grad_x, grad_sum, grad_dot_normalised):  # pragma: no cover (compiled)
-    """grad, x, grad_x (N, P, C); the forward pass's mean, rstd, scale and shift; grad_sum and grad_dot_normalised
-    (N, C) written for the weight's and bias's gradients (their sums over the maps)."""
+    """grad, x, grad_x (N, P, C); the forward pass's mean and rstd; grad_sum and grad_dot_normalised (N, C)
+    written for the bias's and weight's gradients (their sums over the maps). Sums in float64, the map centred."""
     maps, pixels, channels = x.shape
     per_group = channels // groups
     count = pixels * per_group
     for i in prange(maps):
-        # dy: the gradient at the normalised value, i.e. through the LeakyReLU (its sign recomputed from x as the
-        # forward pass computed it).
-        dy_sum = np.zeros(channels, np.float32)
-        dy_dot_x = np.zeros(channels, np.float32)
+        centre = np.empty(channels, np.float32)
+        scale = np.empty(channels, np.float32)
+        for g in range(groups):
+            for c in range(g * per_group, (g + 1) * per_group):
+                centre[c] = mean[i, g]
+                scale[c] = rstd[i, g] * weight[c]
+        # dy: the gradient at the normalised value, i.e. through the LeakyReLU, whose sign is recomputed from x
+        # as the forward pass computed it.
+        dy_sum = np.zeros(channels, np.float64)
+        dy_dot_centred = np.zeros(channels, np.float64)
         for p in range(pixels):
             for c in range(channels):
-                value = x[i, p, c]
+                centred = x[i, p, c] - centre[c]
                 dy = grad[i, p, c]
-                if value * scale[i, c] + shift[i, c] <= 0:
+                if centred * scale[c] + bias[c] <= 0:
                     dy *= slope
                 dy_sum[c] += dy
-                dy_dot_x[c] += dy * value
+                dy_dot_centred[c] += np.float64(dy) * centred
         # dx = rstd * (dy * weight - mean(dy * weight) - x_hat * mean(dy * weight * x_hat)), means per group:
-        # dx = constant + x * x_coefficient + dy * dy_coefficient, per (map, channel).
-        x_coefficient = np.empty(channels, np.float32)
-        constant = np.empty(channels, np.float32)
+        # dx = (x - mean) * centred_coefficient + dy * dy_coefficient + constant, per (map, channel).
+        centred_coefficient = np.empty(channels, np.float32)
         dy_coefficient = np.empty(channels, np.float32)
+        constant = np.empty(channels, np.float32)
         for g in range(groups):
-            m = mean[i, g]
-            r = rstd[i, g]
-            mean_grad = np.float32(0.0)
-            mean_grad_normalised = np.float32(0.0)
+            r = np.float64(rstd[i, g])
+            mean_grad = 0.0
+            mean_grad_normalised = 0.0
             for c in range(g * per_group, (g + 1) * per_group):
-                dot_normalised = r * (dy_dot_x[c] - m * dy_sum[c])  # sum of dy * x_hat
+                dot_normalised = r * dy_dot_centred[c]  # sum of dy * x_hat
                 grad_sum[i, c] = dy_sum[c]
                 grad_dot_normalised[i, c] = dot_normalised
                 mean_grad += weight[c] * dy_sum[c]
                 mean_grad_normalised += weight[c] * dot_normalised
             mean_grad /= count
             mean_grad_normalised /= count
-            coefficient = -r * r * mean_grad_normalised
             for c in range(g * per_group, (g + 1) * per_group):
-                x_coefficient[c] = coefficient
-                constant[c] = -r * mean_grad - m * coefficient
-                dy_coefficient[c] = r * weight[c]
+                centred_coefficient[c] = -r * r * mean_grad_normalised
+                dy_coefficient[c] = scale[c]
+                constant[c] = -r * mean_grad
         for p in range(pixels):
             for c in range(channels):
-                value = x[i, p, c]
+                centred = x[i, p, c] - centre[c]
                 dy = grad[i, p, c]
-                if value * scale[i, c] + shift[i, c] <= 0:
+                if centred * scale[c] + bias[c] <= 0:
                     dy *= slope
-                grad_x[i, p, c] = constant[c] + value * x_coefficient[c] + dy * dy_coefficient[c]
+                grad_x[i, p, c] = centred * centred_coefficient[c] + dy * dy_coefficient[c] + constant[c]
 
 
 def _matrix(x: Tensor) -> np.ndarray:
@@ -123,34 +128,34 @@ def _use_torch_threads() -> None:
 
 
 def _normalise(x: Tensor, groups: int, weight: Tensor, bias: Tensor, eps: float,
-               slope: float) -> tuple[Tensor, tuple[Tensor, ...]]:
-    """The layer's output and what its backward pass needs besides x and the weight: (mean, rstd, scale, shift)."""
+               slope: float) -> tuple[Tensor, Tensor, Tensor]:
+    """The layer's output, and the mean and rstd (N, groups) its backward pass needs."""
     out = torch.empty_like(x)
-    saved = (x.new_empty(x.shape[0], groups), x.new_empty(x.shape[0], groups), x.new_empty(x.shape[:2]),
-             x.new_empty(x.shape[:2]))
+    mean, rstd = x.new_empty(x.shape[0], groups), x.new_empty(x.shape[0], groups)
     _use_torch_threads()
-    _forward(_matrix(x), weight.detach().numpy(), bias.detach().numpy(), groups, np.float32(eps), np.float32(slope),
-             _matrix(out), *(t.numpy() for t in saved))
-    return out, saved
+    _forward(_matrix(x), weight.detach().numpy(), bias.detach().numpy(), groups, eps, np.float32(slope),
+             _matrix(out), mean.numpy(), rstd.numpy())
+    return out, mean, rstd
 
 
 class _GroupNormLeakyReLU(torch.autograd.Function):
     @staticmethod
     def forward(ctx, x: Tensor, groups: int, weight: Tensor, bias: Tensor, eps: float, slope: float) -> Tensor:
-        out, saved = _normalise(x, groups, weight, bias, eps, slope)
-        ctx.save_for_backward(x, weight, *saved)
+        out, mean, rstd = _normalise(x, groups, weight, bias, eps, slope)
+        ctx.save_for_backward(x, weight, bias, mean, rstd)
         ctx.groups, ctx.slope = groups, slope
         return out
 
     @staticmethod
     def backward(ctx, grad: Tensor):
-        x, weight, *saved = ctx.saved_tensors
+        x, weight, bias, mean, rstd = ctx.saved_tensors
         grad = grad.contiguous(memory_format=torch.channels_last)
         grad_x = torch.empty_like(x)
         grad_sum, grad_dot_normalised = x.new_empty(x.shape[:2]), x.new_empty(x.shape[:2])
         _use_torch_threads()
-        _backward(_matrix(grad), _matrix(x), weight.detach().numpy(), ctx.groups, np.float32(ctx.slope),
-                  *(t.numpy() for t in saved), _matrix(grad_x), grad_sum.numpy(), grad_dot_normalised.numpy())
+        _backward(_matrix(grad), _matrix(x), weight.detach().numpy(), bias.detach().numpy(), ctx.groups,
+                  np.float32(ctx.slope), mean.numpy(), rstd.numpy(), _matrix(grad_x), grad_sum.numpy(),
+                  grad_dot_normalised.numpy())
         return grad_x, None, grad_dot_normalised.sum(0), grad_sum.sum(0), None, None
 
 
