@@ -25,6 +25,19 @@ from torch import Tensor, nn
 _FASTMATH = {"reassoc", "contract"}
 
 
+@njit(cache=True)
+def _centre_and_scale(mean, rstd, weight, i, per_group):  # pragma: no cover (compiled)
+    """Map i's per-channel centre and scale, (x - centre) * scale + bias being the normalised value: one function for
+    both passes, so that the backward pass recomputes the activation's sign exactly as the forward pass computed it."""
+    channels = weight.shape[0]
+    centre = np.empty(channels, np.float32)
+    scale = np.empty(channels, np.float32)
+    for c in range(channels):
+        centre[c] = mean[i, c // per_group]
+        scale[c] = rstd[i, c // per_group] * weight[c]
+    return centre, scale
+
+
 @njit(parallel=True, cache=True, fastmath=_FASTMATH)
 def _forward(x, weight, bias, groups, eps, slope, out, mean, rstd):  # pragma: no cover (compiled)
     """x, out (N, P, C); weight, bias (C,); mean and rstd (N, groups) written for the backward pass.
@@ -42,8 +55,6 @@ def _forward(x, weight, bias, groups, eps, slope, out, mean, rstd):  # pragma: n
                 value = np.float64(x[i, p, c])
                 total[c] += value
                 squares[c] += value * value
-        centre = np.empty(channels, np.float32)
-        scale = np.empty(channels, np.float32)
         for g in range(groups):
             group_total = 0.0
             group_squares = 0.0
@@ -53,9 +64,7 @@ def _forward(x, weight, bias, groups, eps, slope, out, mean, rstd):  # pragma: n
             m = group_total / count
             mean[i, g] = m
             rstd[i, g] = 1.0 / np.sqrt(max(group_squares / count - m * m, 0.0) + eps)
-            for c in range(g * per_group, (g + 1) * per_group):
-                centre[c] = mean[i, g]
-                scale[c] = rstd[i, g] * weight[c]
+        centre, scale = _centre_and_scale(mean, rstd, weight, i, per_group)
         for p in range(pixels):
             for c in range(channels):
                 y = (x[i, p, c] - centre[c]) * scale[c] + bias[c]
@@ -71,12 +80,7 @@ def _backward(grad, x, weight, bias, groups, slope, mean, rstd,
     per_group = channels // groups
     count = pixels * per_group
     for i in prange(maps):
-        centre = np.empty(channels, np.float32)
-        scale = np.empty(channels, np.float32)
-        for g in range(groups):
-            for c in range(g * per_group, (g + 1) * per_group):
-                centre[c] = mean[i, g]
-                scale[c] = rstd[i, g] * weight[c]
+        centre, scale = _centre_and_scale(mean, rstd, weight, i, per_group)
         # dy: the gradient at the normalised value, i.e. through the LeakyReLU, whose sign is recomputed from x
         # as the forward pass computed it.
         dy_sum = np.zeros(channels, np.float64)
