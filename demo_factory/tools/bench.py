@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import itertools
 import json
 import os
 import platform
@@ -307,9 +308,12 @@ def train_step_against_kernel_floor(root: Path, steps: int, repeats: int = 10, s
 
     Steps and floor are measured in alternation, `rounds` rounds of `steps // rounds` steps (at least one) then
     the floor, and the ratio is the median of the rounds' ratios: on a shared machine whose speed swings by tens
-    of percent over a minute, a step and a floor measured minutes apart compare two machines. Each round starts
-    with an untimed step: the floor's re-runs leave the caches and the allocator with their own tensors, and the
-    step after them ran 10-17 % slower than the next in three rounds of five, which follows a step as in training."""
+    of percent over a minute, a step and a floor measured minutes apart compare two machines. Each round draws
+    its own batch, as training does: the ratio depends on the batch (a step's fixed costs weigh more in a batch
+    of few keyframes; in `make reference`'s recipe one 95-keyframe batch measured 1.44-1.57x over three runs, a
+    58-keyframe one 1.69x), so one batch would report that batch. Each round starts with an untimed step: the
+    floor's re-runs leave the caches and the allocator with their own tensors, and the step after them ran
+    10-17 % slower than the next in three rounds of five, which follows a step as in training."""
     from types import SimpleNamespace
 
     import torch
@@ -329,11 +333,12 @@ def train_step_against_kernel_floor(root: Path, steps: int, repeats: int = 10, s
     preprocessor, _ = make_pre_post_processors(config, dataset_stats=dataset.meta.stats)
     loader = torch.utils.data.DataLoader(dataset, batch_size=REFERENCE_BATCH_SIZE, shuffle=True,
                                          generator=torch.Generator().manual_seed(0))
-    batch = preprocessor(next(iter(loader)))
+    rounds = max(rounds, 1)
+    batches = [preprocessor(batch) for batch, _ in zip(itertools.cycle(loader), range(rounds))]
     optimizer = config.get_optimizer_preset().build(policy.get_optim_params())  # as lerobot-train builds it
     policy.train()
 
-    def step() -> float:
+    def step(batch) -> float:
         began = time.perf_counter()
         loss, _ = policy.forward(batch)
         optimizer.zero_grad()
@@ -341,14 +346,13 @@ def train_step_against_kernel_floor(root: Path, steps: int, repeats: int = 10, s
         optimizer.step()
         return time.perf_counter() - began
 
-    step()  # the first step also encodes the instructions and warms the allocator
+    step(batches[0])  # the first step also encodes the instructions and warms the allocator
     measure = _measure_compute()
-    calls = measure.record_kernel_calls(lambda: policy.forward(batch))
-    rounds = max(rounds, 1)
     durations, floors, ratios = [], [], []
-    for _ in range(rounds):
-        step()  # after the floor's re-runs (or the recording): a step follows a step, as in training
-        round_durations = [step() for _ in range(max(steps // rounds, 1))]
+    for batch in batches:
+        calls = measure.record_kernel_calls(lambda batch=batch: policy.forward(batch))
+        step(batch)  # after the floor's re-runs (or the recording): a step follows a step, as in training
+        round_durations = [step(batch) for _ in range(max(steps // rounds, 1))]
         floor = measure.kernel_calls_ms(calls, repeats, backward=True)
         durations += round_durations
         floors.append(floor)
@@ -356,7 +360,8 @@ def train_step_against_kernel_floor(root: Path, steps: int, repeats: int = 10, s
     floor = {kind: round(float(np.median([f[kind] for f in floors])), 2) for kind in floors[0]}
     recipe = {name: getattr(config, name) for name in ("whole_episodes", "stem_point_cloud")}
     return {"batch_size": REFERENCE_BATCH_SIZE, "n_history": config.n_history, **recipe,
-            "keyframes_in_batch": int((~batch["action_is_pad"]).sum()), "threads": torch.get_num_threads(),
+            "keyframes_in_batch": [int((~batch["action_is_pad"]).sum()) for batch in batches],
+            "threads": torch.get_num_threads(),
             "rounds": rounds, "train_step_ms": round(1000 * float(np.median(durations)), 1),
             "kernel_floor_ms": floor, "kernel_floor_total_ms": round(sum(floor.values()), 1),
             "step_over_floor": round(float(np.median(ratios)), 2),
