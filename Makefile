@@ -65,9 +65,9 @@ reference-tower: install
 
 # The same chain built to follow instructions never seen: the paper's train variations 0-99 x 6 episodes, MiniLM
 # word-piece features, 8000 steps at a learning rate of 2e-3 annealed to 0 over the last 3000 with the pixel attention's
-# cross-entropy beside the position loss (seeds 1000 / 2 / 3: 100.0 / 100.0 / 100.0 % seen, 65.0 / 90.0 / 77.5 % unseen
-# synthetic), evaluation on its test variations (synthetic, corrupted, human-written) and a learning curve of seen and
-# unseen success at 4 checkpoints; ~57 min on 2 cores at 0.35-s training steps, ~97 at 0.6 s.
+# cross-entropy beside the position loss, evaluation on its test variations (synthetic, corrupted, human-written) and
+# a learning curve of seen and unseen success at 4 checkpoints; about an hour on 2 cores (figures and wall times per
+# seed: README, "Unseen instructions").
 # Results in outputs/reference_unseen/.
 reference-unseen: install
 	$(BIN)/python -m demo_factory.tools.reference_run --unseen --out outputs/reference_unseen

@@ -96,10 +96,8 @@ RECIPE = {"whole_episodes": False, "stem_point_cloud": True}
 # `make reference-unseen`: windows ending at every frame, the authors' 4-channel CNN stem, the plugin's instruction
 # position embeddings, a learning rate of 2e-3 held through the early plateau (position loss ~0.005, the attention
 # between the buttons) and annealed to 0 over the last 3000 steps (constant_then_cosine), and the heatmap
-# cross-entropy beside the authors' losses, which ends that plateau at ~1,500 steps instead of ~4,000-5,000:
-# seeds 1000 / 2 / 3 scored 100.0 / 100.0 / 100.0 % seen and 65.0 / 90.0 / 77.5 % unseen synthetic (session 53's
-# plugin 77.5 / 85.0 / 67.5; without the heatmap loss 80.0 / 100.0 / 77.5 % seen and 32.5 / 55.0 / 45.0 % unseen; every
-# setting tried, with its seeds, in README, unseen).
+# cross-entropy beside the authors' losses, which ends that plateau at ~1,500 steps instead of ~4,000-5,000 (each
+# seed's figures, and every setting tried, in README, "Unseen instructions").
 UNSEEN_RECIPE = RECIPE | {"stem_point_cloud": False, "optimizer_lr": 2e-3, "lr_schedule": "constant_then_cosine",
                           "heatmap_loss_weight": 0.1}
 # `make reference`: without instruction position embeddings. Its last checkpoint scored 97.5 / 52.5 /
