@@ -17,7 +17,7 @@ from hiveformer_fixtures import (
 )
 from lerobot.policies.factory import make_policy, make_pre_post_processors
 from lerobot_policy_hiveformer import HiveformerConfig, HiveformerPolicy, modeling_hiveformer
-from lerobot_policy_hiveformer.cpu_kernels import GroupNormLeakyReLU, stem_input
+from lerobot_policy_hiveformer.cpu_kernels import GroupNormLeakyReLU, bilinear_upsample, weighted_points
 from lerobot_policy_hiveformer.modeling_hiveformer import (
     BlockCausalLayer,
     ClipInstructionEncoder,
@@ -28,9 +28,10 @@ from lerobot_policy_hiveformer.modeling_hiveformer import (
     MultiHeadAttention,
     PackedSteps,
     block_causal_mask,
-    gripper_mark,
+    gripper_pixel,
     heatmap_cross_entropy,
     keyframe_observations,
+    patch_mean_points,
     project_to_pixels,
     quaternion_loss,
     conv_block_of_concatenation,
@@ -75,14 +76,14 @@ def test_gripper_mark_peaks_at_the_projected_gripper(tiny_dataset_root):
     point = points[0, -1, 0, :, 20, 11]  # the table point seen at row 20, column 11
     uv, in_front = project_to_pixels(point, calibration)
     assert in_front and torch.allclose(uv, torch.tensor([11.0, 20.0]), atol=0.1)
-    mark = gripper_mark(point, calibration, 32, 32)[0]
-    assert divmod(int(mark.argmax()), 32) == (20, 11) and mark.sum() == 1  # one pixel, as the authors'
-    behind = gripper_mark(2 * calibration[4:].view(4, 4)[:3, 3] - point, calibration, 32, 32)
-    assert behind.max() == 0
+    assert gripper_pixel(point, calibration, 32, 32) == 20 * 32 + 11  # one pixel, as the authors'
+    assert gripper_pixel(2 * calibration[4:].view(4, 4)[:3, 3] - point, calibration, 32, 32) == -1  # behind
     off_image = point + torch.tensor([5.0, 0.0, 0.0])  # far to the side
     uv, _ = project_to_pixels(off_image, calibration)
     assert not (0 <= uv[0] < 32 and 0 <= uv[1] < 32)
-    assert gripper_mark(off_image, calibration, 32, 32).max() == 0  # nothing marked at the border
+    assert gripper_pixel(off_image, calibration, 32, 32) == -1  # nothing marked at the border
+    marked = obs.stem[..., -1].flatten(-2).sum(-1)  # (M, C): one pixel where the gripper is seen, none elsewhere
+    assert set(marked.unique().tolist()) <= {0.0, 1.0} and marked.sum() > 0
 
 
 def test_the_tokenizer_is_clips_and_needs_no_download():
@@ -448,7 +449,7 @@ def test_training_decodes_only_supervised_steps_with_the_same_predictions(tiny_d
     supervised = supervised_steps(batch)
     assert supervised.sum() == 4
     obs = keyframe_observations(batch, policy.config)
-    instruction, instruction_mask = policy._encode_instructions(obs.instructions, obs.rgb.device)
+    instruction, instruction_mask = policy._encode_instructions(obs.instructions, obs.points.device)
     with torch.no_grad():
         window = policy.predict_keyframes(batch)  # every step, padding included: (3, 3, ...)
         decoded = policy.model(obs, instruction, instruction_mask, decode=supervised)  # (4, ...)
@@ -458,7 +459,7 @@ def test_training_decodes_only_supervised_steps_with_the_same_predictions(tiny_d
     assert torch.allclose(decoded.pixel_attention, window.pixel_attention[supervised], atol=1e-6)
     # Training builds no pixel maps for the padding steps: the same predictions.
     kept = keyframe_observations(batch, policy.config, keep=supervised)
-    assert kept.rgb.shape[0] == int(kept.step_valid.sum()) == 6 and obs.rgb.shape[0] == 9
+    assert kept.stem.shape[0] == int(kept.step_valid.sum()) == 6 and obs.stem.shape[0] == 9
     with torch.no_grad():
         from_kept = policy.model(kept, instruction, instruction_mask, decode=supervised)
     assert torch.allclose(from_kept.position, decoded.position, atol=1e-6)
@@ -526,10 +527,10 @@ def test_rescaling_moves_colour_points_and_mark_together(tiny_dataset_root):
     torch.manual_seed(3)
     for scale in (0.75, 1.25):
         out = keyframe_observations(batch, config, rescale=(scale, scale))
-        assert out.rgb.shape == obs.rgb.shape and out.mark.shape == obs.mark.shape
+        assert out.stem.shape == obs.stem.shape and out.patch_xyz.shape == obs.patch_xyz.shape
         # Every output pixel is one input pixel: its colour, point and validity travel together.
-        before = torch.cat([obs.rgb, obs.points, obs.valid_pixels.unsqueeze(2).float()], 2)
-        after = torch.cat([out.rgb, out.points, out.valid_pixels.unsqueeze(2).float()], 2)
+        before = torch.cat([obs.stem.movedim(-1, 2)[:, :, :3], obs.points, obs.valid_pixels.unsqueeze(2).float()], 2)
+        after = torch.cat([out.stem.movedim(-1, 2)[:, :, :3], out.points, out.valid_pixels.unsqueeze(2).float()], 2)
         pairs_before = {tuple(p) for p in before[-1, 0].flatten(1).T.tolist()}
         assert all(tuple(p) in pairs_before for p in after[-1, 0].flatten(1).T.tolist())
         assert torch.equal(out.calibration, obs.calibration)  # calibration is never augmented
@@ -571,13 +572,14 @@ def test_rescaled_maps_are_the_cameras_resized_padded_and_cropped(tiny_dataset_r
     keep = supervised_steps(batch)
     plain = keyframe_observations(batch, config, keep=keep)
     assert not plain.pixel_steps.all()  # some padding steps are left out
-    height, width = plain.rgb.shape[-2:]
-    maps = torch.cat([plain.rgb, plain.points, plain.valid_pixels.unsqueeze(2).float(), plain.mark], dim=2)
+    height, width = plain.points.shape[-2:]
+    # the stem's input: colour, point cloud and mark (the 7-channel stem)
+    maps = torch.cat([plain.stem.movedim(-1, 2), plain.points, plain.valid_pixels.unsqueeze(2).float()], dim=2)
     sample_of_row = plain.pixel_steps.nonzero()[:, 0]
     for seed, (low, high) in enumerate([(0.75, 1.25), (0.55, 0.8), (1.3, 2.0), (1.0, 1.0)]):
         torch.manual_seed(seed)
         out = keyframe_observations(batch, config, keep=keep, rescale=(low, high))
-        got = torch.cat([out.rgb, out.points, out.valid_pixels.unsqueeze(2).float(), out.mark], dim=2)
+        got = torch.cat([out.stem.movedim(-1, 2), out.points, out.valid_pixels.unsqueeze(2).float()], dim=2)
         torch.manual_seed(seed)
         for sample in range(keep.shape[0]):
             scale = float(torch.empty(()).uniform_(low, high))
@@ -589,7 +591,7 @@ def test_rescaled_maps_are_the_cameras_resized_padded_and_cropped(tiny_dataset_r
             left = int(torch.randint(0, x.shape[-1] - width + 1, ()))
             expected = x[..., top : top + height, left : left + width].unflatten(0, rows.shape[:2])
             assert torch.equal(got[sample_of_row == sample], expected), (seed, sample)
-        assert out.mark.sum() > 0  # the gripper is seen
+        assert out.stem[..., -1].sum() > 0  # the gripper is seen
 
 
 @pytest.mark.parametrize("shape", [(6, 16, 64, 64), (40, 16, 8, 8), (2, 16, 4, 4), (3, 64, 4, 4), (1, 16, 1, 1)])
@@ -632,18 +634,63 @@ def test_group_norm_leaky_relu_is_accurate_where_the_mean_dwarfs_the_spread():
     assert float((got.double() - exact).abs().max()) < 1e-4
 
 
-@pytest.mark.parametrize("with_points", [True, False])
-def test_stem_input_interleaves_the_maps_channels_last(with_points):
-    """The compiled assembly gives the values of scaling the colour and concatenating the maps channels-last."""
+@pytest.mark.parametrize("stem_point_cloud", [True, False])
+def test_the_compiled_maps_are_pytorchs_bit_for_bit(tiny_dataset_root, monkeypatch, stem_point_cloud):
+    """`keyframe_maps` (one compiled pass) gives PyTorch's stem input, point cloud, validity and patch points bit for
+    bit, augmented or not, for windows whose padding steps get no maps: a training run takes the same path."""
+    config, _ = tiny_config(tiny_dataset_root, stem_point_cloud=stem_point_cloud)
+    batch = history_batch(tiny_dataset_root, config, [EPISODE_STARTS[1] + 1, 7, EPISODE_STARTS[2] - 1])
+    keep = supervised_steps(batch)
+    for rescale in (None, (0.75, 1.25), (1.3, 2.0)):
+        torch.manual_seed(0)
+        compiled = keyframe_observations(batch, config, keep=keep, rescale=rescale)
+        with monkeypatch.context() as patch:
+            patch.setattr(modeling_hiveformer, "keyframe_maps", lambda *args: None)  # PyTorch's operations
+            torch.manual_seed(0)
+            eager = keyframe_observations(batch, config, keep=keep, rescale=rescale)
+        assert not compiled.pixel_steps.all()  # padding steps left out
+        assert compiled.stem.shape == (int(compiled.pixel_steps.sum()), 3, 32, 32, 7 if stem_point_cloud else 4)
+        assert compiled.patch_xyz.shape == (int(compiled.pixel_steps.sum()), 3, 3, 2, 2)
+        for name in ("stem", "points", "valid_pixels", "patch_xyz"):
+            got, want = getattr(compiled, name), getattr(eager, name)
+            assert got.dtype == want.dtype and got.shape == want.shape
+            assert torch.equal(got.view(torch.int32) if got.is_floating_point() else got,
+                               want.view(torch.int32) if want.is_floating_point() else want), (rescale, name)
+
+
+@pytest.mark.parametrize("shape", [(40, 16, 16, 16), (3, 16, 4, 4), (2, 32, 3, 7), (1, 16, 1, 1), (2, 5, 3, 7)])
+def test_bilinear_upsample_is_pytorchs_bit_for_bit(shape):
+    """The compiled 2x bilinear upsampling of channels-last maps gives F.interpolate's values and gradients bit for
+    bit; other sizes and channel counts take F.interpolate itself."""
     torch.manual_seed(0)
-    rgb, points, mark = torch.rand(4, 3, 3, 8, 6), torch.randn(4, 3, 3, 8, 6), (torch.rand(4, 3, 1, 8, 6) > 0.9).float()
-    parts = [rgb * 2 - 1, *([points] if with_points else []), mark]
-    expected = torch.cat(parts, dim=2).flatten(0, 1)  # (M*C, k, H, W)
-    got = stem_input(rgb, points if with_points else None, mark)
-    assert got.shape == expected.shape == (12, 7 if with_points else 4, 8, 6)
+    x = torch.randn(shape).contiguous(memory_format=torch.channels_last).requires_grad_()
+    reference = x.detach().clone().contiguous(memory_format=torch.channels_last).requires_grad_()
+    size = (2 * shape[2], 2 * shape[3])
+    got = bilinear_upsample(x, size)
+    expected = torch.nn.functional.interpolate(reference, size=size, mode="bilinear", align_corners=False)
     assert torch.equal(got, expected) and got.is_contiguous(memory_format=torch.channels_last)
-    with_grad = stem_input(rgb.requires_grad_(), points if with_points else None, mark)  # PyTorch's path
-    assert torch.equal(with_grad, expected) and with_grad.is_contiguous(memory_format=torch.channels_last)
+    for grad in (torch.randn_like(expected), torch.randn(expected.shape)):  # channels-last, then NCHW
+        (g,) = torch.autograd.grad(got, x, grad, retain_graph=True)
+        (want,) = torch.autograd.grad(expected, reference, grad, retain_graph=True)
+        assert torch.equal(g, want)
+    odd = bilinear_upsample(x, (shape[2] + 1, shape[3]))  # not doubled: PyTorch's
+    assert torch.equal(odd, torch.nn.functional.interpolate(reference, size=(shape[2] + 1, shape[3]), mode="bilinear",
+                                                            align_corners=False))
+
+
+@pytest.mark.parametrize("shape", [(6, 3, 3, 64 * 64), (2, 1, 3, 5), (1, 3, 3, 1)])
+def test_weighted_points_gradient_is_the_batched_products(shape):
+    """The compiled gradient of the attended point's weights is the batched product's bit for bit."""
+    torch.manual_seed(0)
+    points = torch.randn(shape) * 0.5
+    weights = torch.rand(*shape[:-2], shape[-1], 1).softmax(-2).requires_grad_()
+    reference = weights.detach().clone().requires_grad_()
+    got, expected = weighted_points(points, weights), points @ reference
+    assert torch.equal(got, expected)
+    grad = torch.randn_like(got)
+    got.backward(grad)
+    expected.backward(grad)
+    assert torch.equal(weights.grad, reference.grad)
 
 
 def test_conv_block_of_concatenation_equals_the_block_on_the_concatenation():

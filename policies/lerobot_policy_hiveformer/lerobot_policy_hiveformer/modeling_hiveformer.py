@@ -29,7 +29,7 @@ from .configuration_hiveformer import (
     IMAGES_PREFIX,
     HiveformerConfig,
 )
-from .cpu_kernels import GroupNormLeakyReLU, stem_input
+from .cpu_kernels import GroupNormLeakyReLU, bilinear_upsample, keyframe_maps, weighted_points
 
 ENCODER_CHANNELS = 16
 LEAKY_SLOPE = 0.02
@@ -78,24 +78,13 @@ def project_to_pixels(points: Tensor, calibration: Tensor) -> tuple[Tensor, Tens
     return torch.stack([u, v], dim=-1), in_front
 
 
-def gripper_mark(gripper_xyz: Tensor, calibration: Tensor, height: int, width: int,
-                 source: Tensor | None = None) -> Tensor:
-    """1 at the pixel where the gripper projects into each camera, as in the authors' code; all zeros when
-    it projects outside the image or lies behind the camera.
-
-    gripper_xyz: (..., 3); calibration: (..., 20). With `source`, broadcastable to (..., H*W), the camera
-    pixel (row * W + column) each pixel of a resampled map comes from: 1 wherever that is the gripper's.
-    Returns (..., 1, H, W).
-    """
+def gripper_pixel(gripper_xyz: Tensor, calibration: Tensor, height: int, width: int) -> Tensor:
+    """The flat pixel (row * W + column) where the gripper projects into each camera, -1 where it projects outside
+    the image or lies behind the camera. gripper_xyz: (..., 3); calibration: (..., 20). Returns (...) long."""
     uv, in_front = project_to_pixels(gripper_xyz, calibration)
     u, v = torch.round(uv).long().unbind(-1)
     inside = in_front & (u >= 0) & (u < width) & (v >= 0) & (v < height)
-    pixel = (v.clamp(0, height - 1) * width + u.clamp(0, width - 1)).unsqueeze(-1)
-    if source is not None:
-        return ((source == pixel) & inside.unsqueeze(-1)).to(uv.dtype).view(*u.shape, 1, height, width)
-    mark = torch.zeros(*u.shape, height * width, dtype=uv.dtype, device=uv.device)
-    mark.scatter_(-1, pixel, inside.unsqueeze(-1).to(uv.dtype))
-    return mark.view(*u.shape, 1, height, width)
+    return torch.where(inside, v * width + u, -1)
 
 
 def heatmap_cross_entropy(logits: Tensor, points: Tensor, valid: Tensor, target: Tensor, sigma: float) -> Tensor:
@@ -126,10 +115,12 @@ class KeyframeObservations:
     M = pixel_steps.sum() rows. A training window leaves out its padding steps, which nothing reads.
     """
 
-    rgb: Tensor  # (M, C, 3, H, W) in [0, 1]
+    # (M, C, H, W, 4 or 7): the CNN stem's input per pixel, channels last: colour in [-1, 1], the point cloud (with
+    # `stem_point_cloud`), the gripper mark (1 at the pixel where the gripper projects, as the authors')
+    stem: Tensor
     points: Tensor  # (M, C, 3, H, W) world metres, 0 where no depth
     valid_pixels: Tensor  # (M, C, H, W) bool: the depth had a hit
-    mark: Tensor  # (M, C, 1, H, W): 1 at the current gripper position's pixel
+    patch_xyz: Tensor  # (M, C, 3, H / 16, W / 16): each encoder patch's mean point over its valid pixels
     calibration: Tensor  # (B, T, C, 20)
     gripper: Tensor  # (B, T, 8) = [x, y, z, qx, qy, qz, qw, open]
     step_valid: Tensor  # (B, T) bool: False for padding before the episode start
@@ -146,11 +137,12 @@ def keyframe_observations(batch: dict, config: HiveformerConfig, keep: Tensor | 
                           rescale: tuple[float, float] | None = None) -> KeyframeObservations:
     """Gather the policy's inputs from a LeRobot batch, with history (B, T, ...) or without (B, ...).
 
-    The pixel maps (colour, point cloud, gripper mark) are built for the real steps and those where `keep`
-    (B, T) is True, or for every step without `keep`. With `rescale` (min_scale, max_scale), each sample's
-    maps are augmented as `random_rescale_sources` draws: colour and depth are resampled, and the point cloud
-    and the mark are built from the resampled depth at the camera pixels it came from, the same values as
-    resampling the camera's point cloud and mark, in two gathers instead of four.
+    The pixel maps (the stem's input, point cloud, validity, patch points) are built for the real steps and those
+    where `keep` (B, T) is True, or for every step without `keep`. With `rescale` (min_scale, max_scale), each
+    sample's maps are augmented as `random_rescale_sources` draws: colour and depth are resampled, and the point
+    cloud and the mark are built from the resampled depth at the camera pixels it came from, the same values as
+    resampling the camera's point cloud and mark. On CPU the maps are built in one compiled pass per camera
+    (`keyframe_maps`, PyTorch's values bit for bit); elsewhere with PyTorch's operations.
     """
     cameras = config.camera_names
     first_image = batch[IMAGES_PREFIX + cameras[0]]
@@ -167,40 +159,50 @@ def keyframe_observations(batch: dict, config: HiveformerConfig, keep: Tensor | 
         step_valid = torch.ones(batch_size, steps, dtype=torch.bool, device=first_image.device)
     pixel_steps = torch.ones_like(step_valid) if keep is None else step_valid | keep
 
-    def per_camera(prefix: str) -> Tensor:  # (M, C, ...)
-        return torch.stack([take_steps(with_time(batch[prefix + cam]), pixel_steps) for cam in cameras], dim=1)
-
     calibration = torch.stack([with_time(batch[CALIBRATION_PREFIX + cam]) for cam in cameras], dim=2).float()
     pixel_calibration = take_steps(calibration, pixel_steps)  # (M, C, 20)
-    rgb = per_camera(IMAGES_PREFIX)
-    # LeRobot's native depth: (.., 1, H, W) millimetres, 0 = no hit.
-    depth_mm = per_camera(DEPTH_PREFIX)
-    height, width = rgb.shape[-2:]
-    pixel_columns = pixel_rows = source = None  # the camera pixels each map pixel shows (default: its own)
-    if rescale is not None:
-        rows, columns = random_rescale_sources(pixel_steps, height, width, *rescale)  # (M, H), (M, W)
-        source = (rows[:, :, None] * width + columns[:, None, :]).view(-1, 1, height * width)  # (M, 1, H*W)
-        rgb, depth_mm = resample(rgb, source), resample(depth_mm, source)
-        pixel_rows = rows[:, None, None, :, None].float()  # as depth_to_world_points broadcasts them
-        pixel_columns = columns[:, None, None, None, :].float()
-    depth_mm = depth_mm[..., 0, :, :].float()
-    valid_pixels = depth_mm > 0
-    points = depth_to_world_points(depth_mm / 1000.0, pixel_calibration, pixel_columns, pixel_rows)
-    points = points * valid_pixels.unsqueeze(-3)
+    height, width = first_image.shape[-2:]
+    rows, columns = (  # the camera pixels each map pixel shows: (M, H), (M, W)
+        random_rescale_sources(pixel_steps, height, width, *rescale) if rescale is not None
+        else tuple(torch.arange(n, device=first_image.device).expand(len(pixel_calibration), n) for n in (height, width))
+    )
     gripper = with_time(batch[OBS_STATE])[..., :GRIPPER_STATE_DIM].float()
     gripper_xyz = take_steps(gripper, pixel_steps)[:, None, :3].expand_as(pixel_calibration[..., :3])
-    mark = gripper_mark(gripper_xyz, pixel_calibration, height, width, source)
+    mark_pixel = gripper_pixel(gripper_xyz, pixel_calibration, height, width)  # (M, C)
+    maps = keyframe_maps(
+        [with_time(batch[IMAGES_PREFIX + cam]).flatten(0, 1) for cam in cameras],
+        [with_time(batch[DEPTH_PREFIX + cam]).flatten(0, 1) for cam in cameras],
+        pixel_steps.flatten().nonzero().squeeze(1), rows, columns, pixel_calibration, mark_pixel,
+        config.stem_point_cloud, ENCODER_STRIDE,
+    )  # stem, points, valid pixels, patch points
+    if maps is None:  # PyTorch's operations
+
+        def per_camera(prefix: str) -> Tensor:  # (M, C, ...)
+            return torch.stack([take_steps(with_time(batch[prefix + cam]), pixel_steps) for cam in cameras], dim=1)
+
+        source = (rows[:, :, None] * width + columns[:, None, :]).view(-1, 1, height * width)  # (M, 1, H*W)
+        rgb, depth_mm = resample(per_camera(IMAGES_PREFIX), source), resample(per_camera(DEPTH_PREFIX), source)
+        depth_mm = depth_mm[..., 0, :, :].float()  # LeRobot's native depth: (.., 1, H, W) millimetres, 0 = no hit
+        valid_pixels = depth_mm > 0
+        pixel_rows = rows[:, None, None, :, None].float()  # as depth_to_world_points broadcasts them
+        pixel_columns = columns[:, None, None, None, :].float()
+        points = depth_to_world_points(depth_mm / 1000.0, pixel_calibration, pixel_columns, pixel_rows)
+        points = points * valid_pixels.unsqueeze(-3)
+        mark = (source == mark_pixel.unsqueeze(-1)).to(points.dtype).view(*mark_pixel.shape, 1, height, width)
+        stem = torch.cat([rgb.float() * 2 - 1, *([points] if config.stem_point_cloud else []), mark], dim=2)
+        maps = stem.movedim(2, -1).contiguous(), points, valid_pixels, patch_mean_points(points, valid_pixels)
 
     instructions = batch.get("task")
     if instructions is None:
         raise ValueError("HiveFormer needs the instruction: the batch has no 'task' entry.")
     if isinstance(instructions, str):
         instructions = [instructions] * batch_size
+    stem, points, valid_pixels, patch_xyz = maps
     return KeyframeObservations(
-        rgb=rgb.float(),
+        stem=stem,
         points=points,
         valid_pixels=valid_pixels,
-        mark=mark,
+        patch_xyz=patch_xyz,
         calibration=calibration,
         gripper=gripper,
         step_valid=step_valid,
@@ -254,6 +256,14 @@ def resample(x: Tensor, source: Tensor) -> Tensor:
     """Pixel maps x (M, C, k, H, W) taken at the flat pixels `source` (M, 1, H*W) of each row."""
     flat = x.flatten(-2)  # a gather with an expanded index beats take_along_dim
     return torch.gather(flat, -1, source.unsqueeze(1).expand(flat.shape)).view(x.shape)
+
+
+def patch_mean_points(points: Tensor, valid: Tensor) -> Tensor:
+    """Each encoder patch's mean point over its valid pixels, as the authors' patch position: points (M, C, 3, H, W)
+    and valid (M, C, H, W) -> (M, C, 3, H / 16, W / 16)."""
+    point_mean = F.avg_pool2d(points.flatten(0, 1), ENCODER_STRIDE)
+    valid_fraction = F.avg_pool2d(valid.flatten(0, 1).unsqueeze(1).to(points.dtype), ENCODER_STRIDE)
+    return (point_mean / valid_fraction.clamp_min(1e-6)).unflatten(0, points.shape[:2])
 
 
 def take_steps(x: Tensor, steps: Tensor, leading_dims: int = 2) -> Tensor:
@@ -509,7 +519,7 @@ class UNetDecoder(nn.Module):
         """token_grid: (N, D, H/16, W/16); skips from UNetEncoder. Returns (N, H, W)."""
         x = conv_block_of_concatenation(self.bottleneck, [token_grid, skips[-1]])  # (N, 16, H/16, W/16)
         for block, skip in zip(self.up, reversed(skips[:-1]), strict=True):
-            x = F.interpolate(x, size=skip.shape[-2:], mode="bilinear", align_corners=False)
+            x = bilinear_upsample(x, skip.shape[-2:])
             x = conv_block_of_concatenation(block, [x, skip])  # (N, 16, h, w) at H/8, H/4, H/2
         logit = self.to_logit(x)  # (N, 1, H/2, W/2)
         return upsample_twice(logit.squeeze(1))
@@ -834,21 +844,13 @@ class HiveformerModel(nn.Module):
         which no step attends to) keep zero patch features.
         """
         batch, steps = encode.shape
-        cameras = obs.rgb.shape[1]
-        mark = obs.pixels(obs.mark, encode)  # (M, C, 1, H, W)
-        points = obs.pixels(obs.points, encode)  # (M, C, 3, H, W), already 0 where there is no depth
-        # Built channels-last, (M, C, H, W, 4 or 7), viewed as (M*C, 4 or 7, H, W): oneDNN's convolutions with
-        # few channels run much faster on that layout than on NCHW (which they reorder on every call),
-        # and every encoder and decoder feature map inherits it.
-        images = stem_input(obs.pixels(obs.rgb, encode), points if self.config.stem_point_cloud else None, mark)
+        cameras = obs.points.shape[1]
+        # (M*C, 4 or 7, H, W) viewed channels-last: oneDNN's convolutions with few channels run much faster on that
+        # layout than on NCHW (which they reorder on every call), and every encoder and decoder feature map inherits it.
+        images = obs.pixels(obs.stem, encode).flatten(0, 1).permute(0, 3, 1, 2)
+        patch_xyz = obs.pixels(obs.patch_xyz, encode).flatten(0, 1)  # (M*C, 3, h, w)
         skips = self.encoder(images)
         bottleneck = skips[-1]  # (M*C, 16, h, w)
-
-        valid = obs.pixels(obs.valid_pixels, encode).flatten(0, 1).unsqueeze(1).to(points.dtype)
-        point_sum = F.avg_pool2d(points.flatten(0, 1), ENCODER_STRIDE)
-        valid_fraction = F.avg_pool2d(valid, ENCODER_STRIDE)
-        # (M*C, 3, h, w): mean xyz of the patch's valid points
-        patch_xyz = point_sum / valid_fraction.clamp_min(1e-6)
 
         # Joined channels-last, like every feature map, so that the gradients flowing back stay channels-last:
         # LeakyReLU's and GroupNorm's backward passes on a mix of layouts run ~8x slower.
@@ -945,7 +947,7 @@ class HiveformerModel(nn.Module):
         logits = logits.view(attention.shape)
         # sum over cameras and pixels of attention * point: (M, C, 3, H*W) @ (M, C, H*W, 1), no copy of the points
         points = obs.pixels(obs.points, decode).flatten(-2)
-        attended_point = (points @ attention.flatten(-2).unsqueeze(-1)).squeeze(-1).sum(1)  # (M, 3)
+        attended_point = weighted_points(points, attention.flatten(-2).unsqueeze(-1)).squeeze(-1).sum(1)  # (M, 3)
 
         pooled = self.rotation_gripper_cnn(camera_grids).amax(dim=(-2, -1))  # (M*C, D)
         pooled = pooled.view(-1, cameras, dim).amax(dim=1)  # (M, D)
@@ -990,10 +992,10 @@ def _last_step(obs: KeyframeObservations) -> KeyframeObservations:
     last = torch.zeros_like(obs.pixel_steps)
     last[:, -1] = True
     return KeyframeObservations(
-        rgb=obs.pixels(obs.rgb, last),
+        stem=obs.pixels(obs.stem, last),
         points=obs.pixels(obs.points, last),
         valid_pixels=obs.pixels(obs.valid_pixels, last),
-        mark=obs.pixels(obs.mark, last),
+        patch_xyz=obs.pixels(obs.patch_xyz, last),
         calibration=obs.calibration[:, -1:],
         gripper=obs.gripper[:, -1:],
         step_valid=obs.step_valid[:, -1:],
@@ -1060,7 +1062,7 @@ class HiveformerPolicy(PreTrainedPolicy):
     def predict_keyframes(self, batch: dict) -> KeyframePrediction:
         """Predictions for every step of a batch with history (B, T, ...) or a single step (B, ...)."""
         obs = keyframe_observations(batch, self.config)
-        instruction, instruction_mask = self._encode_instructions(obs.instructions, obs.rgb.device)
+        instruction, instruction_mask = self._encode_instructions(obs.instructions, obs.points.device)
         return self.model(obs, instruction, instruction_mask)
 
     def forward(self, batch: dict) -> tuple[Tensor, dict]:
@@ -1071,7 +1073,7 @@ class HiveformerPolicy(PreTrainedPolicy):
         scales = (config.augmentation_min_scale, config.augmentation_max_scale)
         rescale = scales if self.training and scales != (1.0, 1.0) else None
         obs = keyframe_observations(batch, config, keep=supervised, rescale=rescale)  # no maps for padding steps
-        instruction, instruction_mask = self._encode_instructions(obs.instructions, obs.rgb.device)
+        instruction, instruction_mask = self._encode_instructions(obs.instructions, obs.points.device)
         # The heads run on the supervised steps only: (M, ...) predictions for M supervised steps.
         prediction = self.model(obs, instruction, instruction_mask, decode=supervised)
         target = target[supervised]  # (M, 8)
