@@ -941,8 +941,8 @@ class HiveformerModel(nn.Module):
         height, width = logits.shape[-2:]
         logits = logits.view(-1, cameras * height * width) / self.config.attention_temperature
         valid = obs.pixels(obs.valid_pixels, decode).view(logits.shape)  # (M, C*H*W)
-        # Pixels without depth have no 3D point to point at.
-        logits = logits.masked_fill(~valid, torch.finfo(logits.dtype).min)
+        # Pixels without depth have no 3D point to point at (`where`: masked_fill's values and gradient in one pass).
+        logits = torch.where(valid, logits, torch.finfo(logits.dtype).min)
         attention = logits.softmax(-1).view(-1, cameras, height, width)  # (M, C, H, W)
         logits = logits.view(attention.shape)
         # sum over cameras and pixels of attention * point: (M, C, 3, H*W) @ (M, C, H*W, 1), no copy of the points
