@@ -132,10 +132,15 @@ def _backward(grad, x, weight, bias, groups, slope, mean, rstd,
                 grad_x[i, p, c] = centred * centred_coefficient[c] + dy * dy_coefficient[c] + constant[c]
 
 
+def _channels_last_array(x: Tensor) -> np.ndarray:
+    """A channels-last (N, C, H, W) tensor as the (N, H, W, C) array over its memory (no copy)."""
+    return x.detach().permute(0, 2, 3, 1).numpy()
+
+
 def _matrix(x: Tensor) -> np.ndarray:
     """A channels-last (N, C, H, W) tensor as the (N, H*W, C) array over its memory (no copy)."""
     n, c, h, w = x.shape
-    return x.detach().permute(0, 2, 3, 1).view(n, h * w, c).numpy()
+    return x.detach().permute(0, 2, 3, 1).view(n, h * w, c).numpy()  # a view, or an error: never a silent copy
 
 
 def _use_torch_threads() -> None:
@@ -397,10 +402,6 @@ class _BilinearTwice(torch.autograd.Function):
         _upsample_twice_backward(_channels_last_array(grad), _channels_last_array(grad_x), _twice_sources(shape[2]),
                                  _twice_sources(shape[3]))
         return grad_x
-
-
-def _channels_last_array(x: Tensor) -> np.ndarray:
-    return x.detach().permute(0, 2, 3, 1).numpy()
 
 
 def bilinear_upsample(x: Tensor, size: tuple[int, int]) -> Tensor:

@@ -181,7 +181,9 @@ def keyframe_observations(batch: dict, config: HiveformerConfig, keep: Tensor | 
             return torch.stack([take_steps(with_time(batch[prefix + cam]), pixel_steps) for cam in cameras], dim=1)
 
         source = (rows[:, :, None] * width + columns[:, None, :]).view(-1, 1, height * width)  # (M, 1, H*W)
-        rgb, depth_mm = resample(per_camera(IMAGES_PREFIX), source), resample(per_camera(DEPTH_PREFIX), source)
+        rgb, depth_mm = per_camera(IMAGES_PREFIX), per_camera(DEPTH_PREFIX)
+        if rescale is not None:  # unscaled maps show their own pixels: no gather
+            rgb, depth_mm = resample(rgb, source), resample(depth_mm, source)
         depth_mm = depth_mm[..., 0, :, :].float()  # LeRobot's native depth: (.., 1, H, W) millimetres, 0 = no hit
         valid_pixels = depth_mm > 0
         pixel_rows = rows[:, None, None, :, None].float()  # as depth_to_world_points broadcasts them
