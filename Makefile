@@ -67,7 +67,7 @@ reference-tower: install
 # word-piece features, 8000 steps at a learning rate of 2e-3 annealed to 0 over the last 3000 with the pixel attention's
 # cross-entropy beside the position loss, evaluation on its test variations (synthetic, corrupted, human-written) and
 # a learning curve of seen and unseen success at 4 checkpoints; about an hour on 2 cores (figures and wall times per
-# seed: README, "Unseen instructions").
+# seed: docs/reference/unseen.md).
 # Results in outputs/reference_unseen/.
 reference-unseen: install
 	$(BIN)/python -m demo_factory.tools.reference_run --unseen --out outputs/reference_unseen

@@ -8,8 +8,10 @@ import pytest
 from huggingface_hub import DatasetCard, DatasetCardData
 
 from demo_factory.convert.card import hub_card
+from demo_factory.convert.wrap import join_continued, wrap_card
 
 CARDS = Path(__file__).resolve().parents[1] / "dataset_cards"
+LONGEST_LINE = 200  # cards are read in terminals and diffs too
 SECTIONS = ["## Task and variations", "## Splits", "## Features", "## Cameras", "## Generation statistics",
             "## Load, train and evaluate", "## Regenerate", "## Licence", "## Limitations", "## Citation"]
 
@@ -29,7 +31,24 @@ def check_card(text: str) -> DatasetCard:
     for word in ("Simulated", "Primitive shapes", "guhur2022hiveformer", "james2020rlbench", "cadene2024lerobot",
                  "lerobot-train", "LeRobotDataset", "demo-factory eval", "demo-factory generate", "demo-factory convert"):
         assert word in card.text, word
+    assert max(len(line) for line in text.splitlines()) <= LONGEST_LINE
     return card
+
+
+def test_long_lines_are_wrapped_saying_the_same():
+    prose = "- **corrupted**: " + ", ".join(f"colour{i} → synonym{i}" for i in range(12)) + "."
+    command = "lerobot-train " + " ".join(f"--option{i}=value{i}" for i in range(12)) + " --out 'a b'"
+    row = "| " + " | ".join(f"cell {i}" for i in range(20)) + " |"
+    front = "---\npretty_name: " + "x " * 40 + "\n---"
+    text = wrap_card(f"{front}\n\n{prose}\n{row}\n\n```bash\n{command}\n```\n", width=60)
+    lines = text.splitlines()
+    assert text.startswith(front + "\n") and row in lines  # front matter and table rows as they were
+    item = lines[lines.index("") + 1:lines.index(row)]
+    assert len(item) > 1 and all(len(line) <= 60 and line.startswith("  ") for line in item[1:])
+    assert " ".join(" ".join(item).split()) == prose
+    assert not any("→" in (line.split()[0], line.split()[-1]) for line in item)  # never cut beside an arrow
+    commands = lines[lines.index("```bash") + 1:-1]
+    assert len(commands) > 1 and all(len(line) <= 60 for line in commands) and join_continued(commands) == [command]
 
 
 def test_converter_card_parses_with_the_hub_card_classes(converted_push_buttons):

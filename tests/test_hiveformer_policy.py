@@ -680,7 +680,9 @@ def test_bilinear_upsample_is_pytorchs_bit_for_bit(shape):
 
 @pytest.mark.parametrize("shape", [(6, 3, 3, 64 * 64), (2, 1, 3, 5), (1, 3, 3, 1)])
 def test_weighted_points_gradient_is_the_batched_products(shape):
-    """The compiled gradient of the attended point's weights is the batched product's bit for bit."""
+    """The compiled gradient of the attended point's weights is the batched product's within float32 rounding: bit
+    for bit where MKL's product adds its 3 terms in the loop's order (an AMD EPYC with AVX-512), up to ~5e-7 apart
+    on a third of the values (of magnitude up to ~6) where it orders them otherwise (an Intel Xeon with AMX)."""
     torch.manual_seed(0)
     points = torch.randn(shape) * 0.5
     weights = torch.rand(*shape[:-2], shape[-1], 1).softmax(-2).requires_grad_()
@@ -690,7 +692,7 @@ def test_weighted_points_gradient_is_the_batched_products(shape):
     grad = torch.randn_like(got)
     got.backward(grad)
     expected.backward(grad)
-    assert torch.equal(weights.grad, reference.grad)
+    torch.testing.assert_close(weights.grad, reference.grad, rtol=1e-6, atol=1e-6)
 
 
 def test_conv_block_of_concatenation_equals_the_block_on_the_concatenation():

@@ -24,6 +24,7 @@ from demo_factory.convert.result import ConvertResult
 from demo_factory.convert.splits import SplitPlan, SourceEpisode
 from demo_factory.convert.usage import (act_chunk, gate_command, hiveformer_text_encoder, load_command, quote, train_args,
                                         train_policy)
+from demo_factory.convert.wrap import join_continued, wrap_card
 from demo_factory.instructions import COLOUR_SYNONYMS, hiveformer_annotations
 from demo_factory.instructions.human import sentence_rows
 from demo_factory.record import read_episode
@@ -96,36 +97,54 @@ def _stats(sources: list[SourceEpisode], invalid: int, generation: list[dict]) -
     return "\n".join(lines)
 
 
-def action_row(action_space: str | None) -> str:
-    """The card's table row of the ``action`` feature for a keyframe export (``None``) or a dense one."""
+def _action(action_space: str | None) -> tuple[str, str]:
+    """The ``action`` feature of a keyframe export (``None``) or a dense one: its cell in the features table
+    and its elements."""
     if action_space is None:
-        return (f"| `action` | float32 | (8,) | {', '.join(ACTION_NAMES)}: the next keyframe's target pose and gripper "
-                "command (the last keyframe repeats its own) |")
+        return ("the next keyframe's target pose and gripper command",
+                f"{', '.join(ACTION_NAMES)}: the next keyframe's target pose and gripper command (the last keyframe "
+                "repeats its own)")
     if action_space == "joints":
-        return (f"| `action` | float32 | (8,) | {', '.join(JOINT_ACTION_NAMES)}: action space `joints`, the 7 arm joint "
-                "positions (rad) and the gripper command (open 1 / closed 0) at the next control tick, for the "
-                "joints' position controllers (the last frame repeats its own state) |")
-    return (f"| `action` | float32 | (8,) | {', '.join(ACTION_NAMES)}: action space `ee`, the grasp-frame pose (world = "
-            "robot base frame, metres; quaternion sign chosen with qx >= 0) and the gripper command (open 1 / closed 0) "
-            "at the next control tick, reached through inverse kinematics (the last frame repeats its own state) |")
+        return ("action space `joints`: the arm's joint positions and the gripper command at the next control tick",
+                f"{', '.join(JOINT_ACTION_NAMES)}: action space `joints`, the 7 arm joint positions (rad) and the "
+                "gripper command (open 1 / closed 0) at the next control tick, for the joints' position controllers "
+                "(the last frame repeats its own state)")
+    return ("action space `ee`: the grasp frame's pose and the gripper command at the next control tick",
+            f"{', '.join(ACTION_NAMES)}: action space `ee`, the grasp-frame pose (world = robot base frame, metres; "
+            "quaternion sign chosen with qx >= 0) and the gripper command (open 1 / closed 0) at the next control "
+            "tick, reached through inverse kinematics (the last frame repeats its own state)")
 
 
 def _feature_rows(cameras: list[str], image_size: tuple[int, int], action_space: str | None = None) -> str:
+    """The features table's rows, each short enough for one line (a table row cannot be wrapped): what the
+    vectors hold element by element is in `_vector_elements`."""
     h, w = image_size
     rows = []
     for c in cameras:
         rows.append(f"| `observation.images.{c}` | image (PNG) | ({h}, {w}, 3) | RGB, uint8 |")
-        rows.append(f"| `observation.depth.{c}` | depth image (16-bit PNG) | ({h}, {w}, 1) | LeRobot's native depth (`is_depth_map`, `depth_unit` mm): z-depth in whole millimetres, 0 = no hit; loads as float32 mm |")
-        rows.append(f"| `observation.calibration.{c}` | float32 | (20,) | fx, fy, cx, cy, world-from-camera 4×4 row-major (OpenCV axes); how to unproject: the feature's `info` |")
+        rows.append(f"| `observation.depth.{c}` | depth image (16-bit PNG) | ({h}, {w}, 1) | z-depth in whole "
+                    "millimetres, 0 = no hit; loads as float32 mm (see Cameras) |")
+        rows.append(f"| `observation.calibration.{c}` | float32 | (20,) | fx, fy, cx, cy, world-from-camera 4×4 "
+                    "row-major (OpenCV axes); how to unproject: the feature's `info` |")
     rows += [
-        f"| `observation.state` | float32 | (15,) | {', '.join(STATE_NAMES)} (gripper grasp frame, world = robot base frame, metres; open 1 / closed 0; joints in rad) |",
-        action_row(action_space),
+        "| `observation.state` | float32 | (15,) | the gripper's pose and open state, the arm's joint positions |",
+        f"| `action` | float32 | (8,) | {_action(action_space)[0]} |",
         "| `variation_id` | int64 | (1,) | the variation's id in the task's enumeration |",
-        "| `keyframe_index` | int64 | (1,) | the keyframe reached at (or last reached before) this frame; 0 = initial state |",
+        "| `keyframe_index` | int64 | (1,) | the keyframe reached at (or last reached before) this frame; 0 = initial "
+        "state |",
         "| `timestamp`, `frame_index`, `episode_index`, `index`, `task_index` | | | LeRobot's own |",
     ]
     assert len(CALIBRATION_NAMES) == 20
     return "\n".join(rows)
+
+
+def _vector_elements(action_space: str | None = None) -> str:
+    """The state and action vectors element by element, as a list below the features table."""
+    return "\n".join([
+        f"- `observation.state`: {', '.join(STATE_NAMES)}: the gripper grasp frame's pose (world = robot base frame, "
+        "metres), its open state (open 1 / closed 0) and the 7 arm joint positions (rad)",
+        f"- `action`: {_action(action_space)[1]}",
+    ])
 
 
 def _categories(task) -> str:
@@ -264,6 +283,7 @@ def render_card(result: ConvertResult, template: Path = TEMPLATE) -> str:
                      f"{DEFAULT_CONTROL_FPS} fps is the rate recommended for these tasks: at 10 fps the ticks miss "
                      "the deepest point of brief presses, and even the expert's own actions fail to press"),
         "feature_rows": _feature_rows(result.cameras, result.image_size, result.action_space),
+        "vector_elements": _vector_elements(result.action_space),
         "n_cameras": len(result.cameras),
         "width": result.image_size[1],
         "height": result.image_size[0],
@@ -283,7 +303,7 @@ def render_card(result: ConvertResult, template: Path = TEMPLATE) -> str:
         ]),
         "invalid_section": invalid,
     }
-    return Template(template.read_text(encoding="utf-8")).substitute(mapping)
+    return wrap_card(Template(template.read_text(encoding="utf-8")).substitute(mapping))
 
 
 def _frame_description(result: ConvertResult) -> str:
@@ -374,11 +394,11 @@ def hub_card(card_text: str, repo_id: str, split: str, splits: list[str], camera
     here = (f"**This repository holds the `{split}` split** as a LeRobot v3.0 dataset (tag `v3.0`). "
             f"The dataset's other splits are repositories of their own: {others}.")
     sections = _sections(body)
-    load = next((s for s in sections if s and s[0] == LOAD_HEADING), [])
+    load = join_continued(next((s for s in sections if s and s[0] == LOAD_HEADING), []))
     train_line = next((line for line in load if line.startswith("lerobot-train ")), "")
     policy = re.search(r"--policy\.type=(\w+)", train_line)
     chunk = re.search(r"--policy\.chunk_size=(\d+) --policy\.n_action_steps=(\d+)", train_line)
-    fps = re.search(r"`fps` = (\d+)", body)
+    fps = re.search(r"`fps`\s+=\s+(\d+)", body)
     args = [a for a in shlex.split(train_line) if not a.startswith("--dataset.root=")]
     train = quote([f"--dataset.repo_id={this}" if a.startswith("--dataset.repo_id=") else a for a in args])
     code = f'from lerobot.datasets.lerobot_dataset import LeRobotDataset as D; print(D("{this}"))'
@@ -410,5 +430,5 @@ def hub_card(card_text: str, repo_id: str, split: str, splits: list[str], camera
         elif heading == "## Regenerate":
             close = max(j for j, line in enumerate(section) if line.startswith("```"))
             section.insert(close, publish_command)
-    card.text = "\n".join(line for section in sections for line in section) + "\n"
+    card.text = wrap_card("\n".join(line for section in sections for line in section)) + "\n"
     return str(card)

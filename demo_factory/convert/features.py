@@ -47,8 +47,8 @@ ACTION_SPACES = ("joints", "ee")  # of dense exports; a keyframe export's action
 DEFAULT_ACTION_SPACE = "joints"
 # The control rate recommended for the tasks (generate --dense-fps 20): presses and grasps are brief
 # straight moves, and at 10 fps the ticks often miss their deepest point: replaying the expert's own
-# 10 fps actions closed loop solved 1 of 6 push_buttons test episodes, its 20 fps actions 6 of 6 (and
-# 3 of 3 tower episodes; measured 2026-11-23 with the dense environment and the expert reference).
+# 10 fps actions closed loop solves 1 of 6 push_buttons test episodes, its 20 fps actions 6 of 6 (and
+# 3 of 3 tower episodes; measured with the dense environment and the expert reference).
 DEFAULT_CONTROL_FPS = 20
 JOINT_ACTION_NAMES = [*(f"joint_{i}" for i in range(7)), "open"]
 

@@ -27,8 +27,9 @@ WORKSPACE = ((0.38, 0.62), (-0.22, 0.22))  # x and y ranges of button centres
 MIN_SPACING = 0.12
 # A pressed cap turns lime and stays lime for the rest of the episode, as in the authors' push_buttons3 (its
 # `step` colours a button's top plate and wrap green once its joint condition holds; nothing resets it): the
-# scene shows which buttons are done. Without it, only the history tells, and policies pressed the first
-# instructed button again at the third press (README, unseen). Lime is not in the palette, so never a button.
+# scene shows which buttons are done. Without it, only the history tells, and policies press the first
+# instructed button again at the third press (docs/reference/unseen.md). Lime is not in the palette, so never a
+# button.
 PRESSED_RGBA = rgba("lime")
 KEYFRAMES_PER_PRESS = 3  # over the cap, pressed, over it again (motions.press)
 

@@ -23,15 +23,16 @@ HEIGHT_TOLERANCE = 0.01
 LIFTED = 0.02  # a held cube this far above where it started counts as lifted (failure reasons)
 NEAR_GRASP = 0.06  # a gripper closing this near a cube's centre was grasping at it
 TRACK_EVERY = 4  # physics steps between the checks of which cubes are held or in place (1/60 s)
-# The target spot: a dark grey square. The lighter grey it had (0.6) is as bright as the table (0.72, 0.6, 0.45):
-# at 64x64 it is a few pixels that differ from the table in hue only, and a policy trained on it placed cubes near
-# the demonstrations' mean place (README, tower).
+# The target spot: a dark grey square. A light grey (0.6) is as bright as the table (0.72, 0.6, 0.45): at 64x64
+# it is a few pixels that differ from the table in hue only, and a policy trained on it places cubes near the
+# demonstrations' mean place (docs/reference/tower.md).
 TARGET_RGBA = (0.25, 0.25, 0.25, 1.0)
 NEAR_TARGET = CUBE  # xy distance from the target spot of a cube that missed it narrowly (or stands there wrongly)
 # Each cube: above it, down to it and close, up; above its level on the target, down and open, up. The gripper
 # switches at the end of the move down, not as a keyframe of its own: a policy predicts every keyframe's pose
-# afresh, and session 19's tower policy, asked for the expert's switch in place, moved 1-4 cm first (closed on a
-# cube's upper edge or beside its centre, opened after pushing the carried cube into the tower; README, tower).
+# afresh, and a tower policy trained on a switch in place (SWITCH_KEYFRAME) moves 1-4 cm before it switches
+# (closes on a cube's upper edge or beside its centre, opens after pushing the carried cube into the tower;
+# docs/reference/tower.md).
 SWITCH_KEYFRAME = False
 KEYFRAMES_PER_CUBE = 8 if SWITCH_KEYFRAME else 6  # grasp and place, 4 or 3 each
 

@@ -59,8 +59,9 @@ REFERENCE_BATCH_SIZE = 16
 REFERENCE_STEPS = 1500
 REFERENCE_TEXT_ENCODER = "one_hot"
 # HiveFormer runs validate a checkpoint every this many steps by default: success swings by tens of points
-# between checkpoints 100 steps apart at the authors' constant learning rate (README: 77.5, 30.0, 45.0,
-# 87.5 % at steps 800-1100), so the run keeps the one that does best on validation scenes, as the authors do.
+# between checkpoints 100 steps apart at the authors' constant learning rate (seed 2: 77.5, 30.0, 45.0, 87.5 %
+# at steps 800-1100; docs/reference/push_buttons.md), so the run keeps the one that does best on validation
+# scenes, as the authors do.
 VALIDATE_EVERY = 100
 # Keyframes of history: by default the longest training episode (push_buttons: 10), as the authors feed
 # whole episodes; with fewer, windows that slide past the episode start look alike.
@@ -74,11 +75,12 @@ PRESETS = {
             "steps": 1000, "batch_size": 8, "eval_episodes": 20},
 }
 # `make reference`: the one-button variation gets EXTRA_EPISODES more episodes (100 in all; generation seed
-# EXTRA_SEED). Its 4-keyframe episodes gave it 19 % of the training windows, and only its scenes with a navy or blue
+# EXTRA_SEED). Its 4-keyframe episodes give it 19 % of the training windows, and only its scenes with a navy or blue
 # distractor (about 1 in 4) tell the instruction apart from a shortcut that fits every other training scene: press
 # navy, else blue, else maroon (the variations' first targets). On 40 episodes, 10 of the 23 test failures of seeds
-# 1000 / 2 / 3 pressed navy or blue where maroon was asked; on 100, none (README, session 35). Tower's one-cube
-# variation (46, green) has the same shortcut (pick black, else white, else green) and gets 80 more (160 in all).
+# 1000 / 2 / 3 press navy or blue where maroon is asked; on 100, none (docs/reference/push_buttons.md). Tower's
+# one-cube variation (46, green) has the same shortcut (pick black, else white, else green) and gets 80 more (160 in
+# all).
 EXTRA_EPISODES = {"push_buttons": 60, "tower": 80}
 EXTRA_SEED = 5
 # --unseen: the paper's 100 train ids 0-99, 6 episodes each (600); the test episodes are one per test variation that
@@ -86,8 +88,8 @@ EXTRA_SEED = 5
 # context-free word-piece embeddings (`minilm_words`): with its contextual token features a 20-id run scored 67.5 %
 # seen and 15.0 % unseen synthetic, with these 87.5 and 27.5 %. At 1e-3, on 3 episodes a variation 50.0 / 35.0 % on
 # validation at 6000 steps, on 6 80.0 / 37.5 %; at 2e-3 for 8000 steps, validated every 1000, 92.5 / 62.5 % at 8000
-# (kept), the test scenes 92.5 / 67.5 % (seed 1000, the 7-channel stem; README, unseen). Validated every 2000 steps,
-# as the curve still rose at 8000 and each validation costs ~1 min.
+# (kept), the test scenes 92.5 / 67.5 % (seed 1000, the 7-channel stem; docs/reference/unseen.md). Validated every
+# 2000 steps, as the curve still rises at 8000 and each validation costs ~1 min.
 UNSEEN = {"episodes_per_variation": 6, "test_episodes_per_variation": 1,
           "text_encoder": "minilm_words", "steps": 8000, "curve": 4, "eval_episodes": 40}
 CURVE_SPLITS = {False: ("train",), True: ("train", "test_unseen_synthetic")}
@@ -97,20 +99,21 @@ RECIPE = {"whole_episodes": False, "stem_point_cloud": True}
 # position embeddings, a learning rate of 2e-3 held through the early plateau (position loss ~0.005, the attention
 # between the buttons) and annealed to 0 over the last 3000 steps (constant_then_cosine), and the heatmap
 # cross-entropy beside the authors' losses, which ends that plateau at ~1,500 steps instead of ~4,000-5,000 (each
-# seed's figures, and every setting tried, in README, "Unseen instructions").
+# seed's figures and the settings compared: docs/reference/unseen.md; every run: docs/results/runs.csv).
 UNSEEN_RECIPE = RECIPE | {"stem_point_cloud": False, "optimizer_lr": 2e-3, "lr_schedule": "constant_then_cosine",
                           "heatmap_loss_weight": 0.1}
-# `make reference`: without instruction position embeddings. Its last checkpoint scored 97.5 / 52.5 /
-# 90.0 % on seeds 1000 / 2 / 3 (README: an annealed learning rate did not make that robust); the checkpoint
-# kept by validation 97.5 / 90.0 / 95.0 % (README, session 18). With the plugin's defaults (the authors': whole
-# episodes, 4-channel stem) seed 1000 scored 52.5 % after 1500 steps (the three-button variation 0/16, every
-# failure its third press).
+# `make reference`: without instruction position embeddings. Its last checkpoint scores 97.5 / 52.5 /
+# 90.0 % on seeds 1000 / 2 / 3 (an annealed learning rate does not make that robust); the checkpoint kept by
+# validation 97.5 / 90.0 / 95.0 % (docs/reference/push_buttons.md). With the plugin's defaults (the authors':
+# whole episodes, 4-channel stem) seed 1000 scores 52.5 % after 1500 steps (the three-button variation 0/16,
+# every failure its third press).
 SEEN_RECIPE = RECIPE | {"instruction_position_embeddings": False}
 # `make reference-tower`: SEEN_RECIPE with the learning rate annealed to 0 from a peak of 2e-3, on 80 episodes a
 # variation (the one-cube one 160: EXTRA_EPISODES), for 6000 steps, validated every 1200. At a constant rate for
 # 2400 steps (37.5 % seen) its first grasp was 1.5 cm off the expert's; annealed over 4800 steps, 0.33 cm
 # (tools/keyframe_errors.py). Annealed from 1e-3 for 6000 steps: 87.5 / 77.5 % on seeds 1000 / 2, from 5e-4 45.0 %
-# (seed 1000); with the extra one-cube episodes, from 1e-3 77.5 / 87.5 %, from 2e-3 80.0 / 85.0 % (README, tower).
+# (seed 1000); with the extra one-cube episodes, from 1e-3 77.5 / 87.5 %, from 2e-3 80.0 / 85.0 %
+# (docs/reference/tower.md).
 TOWER = {"episodes_per_variation": 80, "steps": 6000, "curve": 5}
 TOWER_RECIPE = SEEN_RECIPE | {"lr_schedule": "cosine", "optimizer_lr": 2e-3}
 DENSE_FPS = 20  # the dense export's control rate (ACT)

@@ -7,8 +7,8 @@ space at the top of the heap is given back, so each new activation, gradient or 
 its memory in (zero-filled by the kernel) every step. HiveFormer's CPU steps are full of such tensors
 (the history's (B, T, C, 7, H, W) maps, the (heads, 193, 1170) attention scores): a train step (batch 8,
 history 6, 3 cameras 128², 2 threads) took 5.6 s with 40 % of the process's CPU time in the kernel, and
-2.8 s once malloc keeps freed memory, for 2 GiB more peak RSS (`measure_compute.py`; the README's
-Compute section has the figures).
+2.8 s once malloc keeps freed memory, for 2 GiB more peak RSS (`measure_compute.py`; the figures are in
+docs/plugin.md).
 
 `retain_freed_memory()` sets two of glibc's documented `mallopt` parameters for the whole process:
 no `mmap` for large blocks (M_MMAP_MAX = 0, so they come from the heap) and no trimming of the heap

@@ -141,7 +141,7 @@ class HiveformerConfig(PreTrainedConfig):
     instruction_position_embeddings: bool = True
     # Standardise each instruction token's frozen features (zero mean, unit variance over its features, no
     # learned scale) before their projection. "minilm_words"' word-piece embeddings are ~0.06 a feature: at
-    # initialisation, projected, "red" and "blue" differ by ~4 % of a position embedding's norm.
+    # initialisation, projected, "red" and "blue" differ by ~4 percent of a position embedding's norm.
     instruction_feature_norm: bool = False
     # Learned causal self-attention layers over the instruction tokens (after their projection and
     # position embeddings), so that each token sees the words before it: what tells the second colour
@@ -187,9 +187,10 @@ class HiveformerConfig(PreTrainedConfig):
     # Learning rate over the run: "constant" (the authors', who pick the checkpoint by validation) or
     # "cosine" (annealed from optimizer_lr to 0 over lerobot-train's --steps: LeRobot's
     # cosine_annealing_with_warmup, no warmup), to end on a settled model rather than one draw from a noisy
-    # plateau. On make reference it did not make the result robust to the seed (README: seed 2 52.5 -> 90 %,
-    # seed 3 90 -> 37.5 %); on make reference-unseen it lengthened the plateau. "constant_then_cosine": the rate
-    # held for the first (1 - lr_decay_fraction) of the steps, then annealed to 0 over the rest.
+    # plateau. On make reference it does not make the result robust to the seed (seed 2 52.5 -> 90 percent, seed 3
+    # 90 -> 37.5 percent: docs/reference/push_buttons.md); on make reference-unseen it lengthens the plateau
+    # (docs/reference/unseen.md). "constant_then_cosine": the rate held for the first (1 - lr_decay_fraction)
+    # of the steps, then annealed to 0 over the rest.
     lr_schedule: str = "constant"
     # Steps over which the cosine schedule first ramps the rate up linearly from 0 (LeRobot's
     # cosine_annealing_with_warmup); 0: none. Only with lr_schedule="cosine".

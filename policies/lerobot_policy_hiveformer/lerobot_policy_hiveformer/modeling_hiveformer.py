@@ -542,7 +542,7 @@ def upsample_twice(x: Tensor) -> Tensor:
 
 class Dropout(nn.Dropout):
     """`nn.Dropout` (same rule, same scaling) whose mask comes from uniform draws: PyTorch's CPU dropout
-    draws it with `bernoulli_`, about twice as slow (README, Compute). On other devices, PyTorch's."""
+    draws it with `bernoulli_`, about twice as slow (docs/plugin.md). On other devices, PyTorch's."""
 
     def forward(self, x: Tensor) -> Tensor:
         if not self.training or self.p == 0 or x.device.type != "cpu":
@@ -608,7 +608,7 @@ class MultiHeadAttention(nn.Module):
         16 (the paper's is 8), and zero columns in queries, keys and values change no score and no output (a
         rollout's cross-attention, 193 queries x 1,170 keys: ~1.4x faster). A training step keeps the heads as
         they are: there the kernels' forward and backward passes are no slower at 8, and the padding's copies,
-        zero-fills and gradient slices cost ~20 ms of a `make reference` step (README, benchmarks)."""
+        zero-fills and gradient slices cost ~20 ms of a `make reference` step (docs/benchmarks.md)."""
         head_dim = x.shape[-1] // (parts * self.num_heads)
         heads = x.unflatten(-1, (parts, self.num_heads, head_dim)).movedim(-3, 1).transpose(-2, -3)
         inference = x.device.type == "cpu" and not x.requires_grad and not self._dropout_p()

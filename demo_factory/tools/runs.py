@@ -1,0 +1,212 @@
+"""The table of every training run (``docs/results/runs.csv``) and the README's results table built from it.
+
+Every reference run, experiment and failure is one row: date, commit, command, recipe, task, seed, steps,
+seconds a step, wall minutes, success per split, the machine, a status and a short note. The rows marked
+``current`` state each recipe's present figure; the README's results table is made from them, so a figure
+lives in one place.
+
+    python -m demo_factory.tools.runs add outputs/reference/reference_run.json --note "..."   # append a run
+    python -m demo_factory.tools.runs table              # print the README's results table
+    python -m demo_factory.tools.runs table --write README.md   # replace it between the README's markers
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import datetime
+import json
+import os
+import platform
+import subprocess
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+
+from demo_factory.errors import UsageError
+
+ROOT = Path(__file__).resolve().parents[2]
+RUNS = ROOT / "docs" / "results" / "runs.csv"
+COLUMNS = ("date", "commit", "command", "recipe", "task", "seed", "steps", "s_per_step", "wall_min", "seen",
+           "unseen_synthetic", "unseen_corrupted", "unseen_human", "machine", "status", "current", "note")
+SPLIT_COLUMNS = {"seen": "train", "unseen_synthetic": "test_unseen_synthetic",
+                 "unseen_corrupted": "test_unseen_corrupted", "unseen_human": "test_unseen_human"}
+STATUSES = ("completed", "stopped", "failed")
+BEGIN, END = "<!-- results table: python -m demo_factory.tools.runs table --write README.md -->", "<!-- end of results table -->"
+
+
+@dataclass(frozen=True)
+class Recipe:
+    """A reference command as the README's results table shows it, with the paper's figures for its task."""
+
+    trains: str
+    page: str
+    paper: str = ""  # the label of the paper's row, e.g. "HiveFormer paper, CLIP (push buttons)"
+    paper_figures: tuple[str, ...] = ()  # seen, unseen synthetic, corrupted, human (%)
+
+
+RECIPES = {
+    "make reference": Recipe("push_buttons, 3 seen variations, one-hot", "docs/reference/push_buttons.md"),
+    "make reference-unseen": Recipe("push_buttons, 100 variations, MiniLM", "docs/reference/unseen.md",
+                                    "HiveFormer paper, CLIP (push buttons)", ("100", "86.3", "85.6", "74.2")),
+    "make reference-tower": Recipe("tower, 3 seen variations, one-hot", "docs/reference/tower.md",
+                                   "HiveFormer paper, CLIP (tower)", ("77.4", "56.2", "53.6", "24.1")),
+    "make reference-act": Recipe("ACT, 1 push_buttons variation, dense", "docs/reference/act.md"),
+}
+
+
+def read_runs(path: Path = RUNS) -> list[dict[str, str]]:
+    """The table's rows, checked: its columns, a known recipe or `experiment`, a status, numbers where numbers go."""
+    with path.open(newline="") as file:
+        reader = csv.DictReader(file)
+        if tuple(reader.fieldnames or ()) != COLUMNS:
+            raise UsageError(f"{path}: columns {reader.fieldnames} are not {list(COLUMNS)}")
+        rows = list(reader)
+    for line, row in enumerate(rows, start=2):
+        if row["recipe"] not in (*RECIPES, "experiment"):
+            raise UsageError(f"{path}:{line}: recipe {row['recipe']!r} is none of {[*RECIPES, 'experiment']}")
+        if row["status"] not in STATUSES or row["current"] not in ("0", "1"):
+            raise UsageError(f"{path}:{line}: status {row['status']!r} (accepted: {', '.join(STATUSES)}) or "
+                             f"current {row['current']!r} (accepted: 0, 1)")
+        for column in ("seed", "steps", "s_per_step", "wall_min", *SPLIT_COLUMNS):
+            try:
+                row[column] and float(row[column])
+            except ValueError:
+                raise UsageError(f"{path}:{line}: {column} {row[column]!r} is not a number") from None
+    return rows
+
+
+def _figures(rows: list[dict[str, str]], column: str) -> str:
+    """One split's figures over the seeds, `90 / 80 / 92.5`; `—` where a run did not measure it."""
+    values = [row[column] for row in rows]
+    return " / ".join(f"{float(v):g}" for v in values) if any(values) else "—"
+
+
+def _span(values: list[str]) -> str:
+    numbers = sorted(round(float(v)) for v in values if v)
+    if not numbers:
+        return ""
+    return f"{numbers[0]}" if numbers[0] == numbers[-1] else f"{numbers[0]}–{numbers[-1]}"
+
+
+def results_table(rows: list[dict[str, str]]) -> str:
+    """The README's results table: a row per reference command from its `current` runs (the default seed first),
+    success in % per split over the seeds, and the paper's row for the same task below it."""
+    lines = ["| command | trains | seeds | seen | unseen synthetic | corrupted | human | wall (min) |",
+             "|---|---|---|---|---|---|---|---|"]
+    for name, recipe in RECIPES.items():
+        current = [row for row in rows if row["recipe"] == name and row["current"] == "1"]
+        if not current:
+            continue
+        current.sort(key=lambda row: (int(row["seed"]) != 1000, int(row["seed"])))
+        figures = " | ".join(_figures(current, column) for column in SPLIT_COLUMNS)
+        lines.append(f"| [`{name}`]({recipe.page}) | {recipe.trains} | {' / '.join(row['seed'] for row in current)} "
+                     f"| {figures} | {_span([row['wall_min'] for row in current])} |")
+        if recipe.paper:
+            lines.append(f"| *{recipe.paper}* | | | {' | '.join(recipe.paper_figures)} | |")
+    return "\n".join(lines)
+
+
+def readme_table(readme: str) -> str:
+    """The results table as it stands between the README's markers."""
+    if BEGIN not in readme or END not in readme:
+        raise UsageError(f"the README has no results table between {BEGIN!r} and {END!r}")
+    return readme.split(BEGIN, 1)[1].split(END, 1)[0].strip("\n")
+
+
+def write_table(readme_path: Path, rows: list[dict[str, str]]) -> bool:
+    """Replace the README's results table with the one built from `rows`; True when it changed."""
+    readme = readme_path.read_text()
+    old, new = readme_table(readme), results_table(rows)
+    if old != new:
+        before, rest = readme.split(BEGIN, 1)
+        readme_path.write_text(f"{before}{BEGIN}\n{new}\n{END}{rest.split(END, 1)[1]}")
+    return old != new
+
+
+def _git_commit() -> str:
+    done = subprocess.run(["git", "-C", str(ROOT), "rev-parse", "--short", "HEAD"], capture_output=True, text=True)
+    return done.stdout.strip() if done.returncode == 0 else ""
+
+
+def _machine() -> str:
+    model = platform.processor() or platform.machine()
+    cpuinfo = Path("/proc/cpuinfo")
+    if cpuinfo.exists():
+        names = [line.split(":", 1)[1].strip() for line in cpuinfo.read_text().splitlines()
+                 if line.startswith("model name")]
+        model = names[0] if names else model
+    return f"{os.cpu_count()}-core {model}"
+
+
+def run_row(summary: dict, note: str, recipe: str | None = None, status: str = "completed") -> dict[str, str]:
+    """A table row from a reference run's `reference_run.json`."""
+    config = summary["configuration"]
+    splits = summary["results"]["splits"]
+    if recipe is None:
+        recipe = ("make reference-act" if config.get("policy") == "act" else "make reference-unseen"
+                  if config.get("unseen") else "make reference-tower" if config.get("task") == "tower"
+                  else "make reference")
+    command = ["python -m demo_factory.tools.reference_run"]
+    command += [f"--task {config['task']}"] if config.get("task", "push_buttons") != "push_buttons" else []
+    command += ["--unseen"] if config.get("unseen") else []
+    command += [f"--policy {config['policy']}"] if config.get("policy", "hiveformer") != "hiveformer" else []
+    command += [f"--seed {config['seed']}", *(f"--train-arg={arg}" for arg in config.get("train_arg") or [])]
+    step = summary.get("train_step", {}).get("updt_s")
+    return {
+        "date": datetime.date.today().isoformat(), "commit": _git_commit(), "command": " ".join(command),
+        "recipe": recipe, "task": config.get("task", "push_buttons"), "seed": str(config["seed"]),
+        "steps": str(config["steps"]), "s_per_step": f"{step:.3f}" if step else "",
+        "wall_min": f"{sum(summary['stage_seconds'].values()) / 60:.0f}",
+        **{column: f"{100 * splits[split]['success_rate']:.1f}" if split in splits else ""
+           for column, split in SPLIT_COLUMNS.items()},
+        "machine": _machine(), "status": status, "current": "0", "note": note,
+    }
+
+
+def add_run(path: Path, row: dict[str, str]) -> None:
+    """Insert `row` first (the table is newest first), keeping every other row as it was."""
+    rows = read_runs(path) if path.exists() else []
+    with path.open("w", newline="") as file:
+        writer = csv.DictWriter(file, fieldnames=COLUMNS, lineterminator="\n")
+        writer.writeheader()
+        writer.writerows([row, *rows])
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m demo_factory.tools.runs", description=__doc__.split("\n\n")[0],
+                                     epilog=__doc__.split("\n\n")[2], formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--runs", type=Path, default=RUNS, help=f"the table (default: {RUNS.relative_to(ROOT)})")
+    commands = parser.add_subparsers(dest="command", required=True)
+    add = commands.add_parser("add", help="append a reference run from its reference_run.json")
+    add.add_argument("summary", type=Path, help="OUT/reference_run.json of a finished reference run")
+    add.add_argument("--note", required=True, help="what the run varied or showed, in one phrase")
+    add.add_argument("--recipe", choices=[*RECIPES, "experiment"],
+                     help="default: the reference command the run's options name; `experiment` for variants")
+    table = commands.add_parser("table", help="print the README's results table, built from the current runs")
+    table.add_argument("--write", type=Path, metavar="README", help="replace the table between the README's markers")
+    args = parser.parse_args(argv)
+    try:
+        if args.command == "add":
+            if not args.summary.is_file():
+                raise UsageError(f"no reference run summary at {args.summary}: give OUT/reference_run.json")
+            try:
+                summary = json.loads(args.summary.read_text())
+                row = run_row(summary, args.note, args.recipe)
+            except (json.JSONDecodeError, KeyError, TypeError) as error:
+                raise UsageError(f"{args.summary} is not a reference run summary ({error!r})") from None
+            add_run(args.runs, row)
+            print(f"added to {args.runs}: {row['command']} ({row['date']}, seen {row['seen']} %)")
+        elif args.write:
+            changed = write_table(args.write, read_runs(args.runs))
+            print(f"{args.write}: results table {'rewritten' if changed else 'already up to date'}")
+        else:
+            print(results_table(read_runs(args.runs)))
+    except UsageError as error:
+        print(f"error: {error}", file=sys.stderr)
+        return error.exit_code
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
