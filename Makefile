@@ -14,7 +14,7 @@ DEMO_DATASET := data/lerobot/push_buttons
 FFMPEG_LIBS := libavutil57 libavcodec59 libavformat59 libavfilter8 libavdevice59 libswscale6 libswresample4
 SUDO := $(shell [ "$$(id -u)" = 0 ] || echo sudo -n)
 
-.PHONY: install demo test bench reference reference-tower reference-unseen reference-act cards clean
+.PHONY: install demo test bench reference reference-tower reference-unseen reference-suite reference-act cards clean
 
 install: $(STAMP)
 
@@ -71,6 +71,13 @@ reference-tower: install
 # Results in outputs/reference_unseen/.
 reference-unseen: install
 	$(BIN)/python -m demo_factory.tools.reference_run --unseen --out outputs/reference_unseen
+
+# The paper's Table 1: one multi-task HiveFormer over the ten_tasks suite, one variation a task, success per task and
+# their average beside the paper's (docs/reference/suite.md). SUITE=NAME runs another suite. Results in
+# outputs/reference_<suite>/.
+SUITE ?= ten_tasks
+reference-suite: install
+	$(BIN)/python -m demo_factory.tools.reference_run --suite $(SUITE) --out outputs/reference_$(SUITE)
 
 # The same chain for ACT on a dense export of one variation (outputs/reference_act/).
 reference-act: install

@@ -16,7 +16,7 @@ from demo_factory.generate import job_requests, run_requests  # noqa: E402
 
 # The files that take longest (end-to-end chains), first: each is handed to a process at the start instead of
 # ending the run alone (with `--dist loadfile --no-loadscope-reorder`, files are handed out in this order).
-LONGEST_FIRST = ("test_reference_run_tower.py", "test_reference_run.py", "test_lerobot_tools.py", "test_publish_http.py",
+LONGEST_FIRST = ("test_reference_run_tower.py", "test_reference_run.py", "test_reference_suite.py", "test_lerobot_tools.py", "test_publish_http.py",
                  "test_dense.py", "test_evaluate.py", "test_experts.py", "test_ten_tasks.py")
 
 

@@ -91,10 +91,14 @@ def test_committed_standard_cards(name):
 
 @pytest.mark.parametrize("suite", ["ten_tasks", "categories"])
 def test_committed_suite_cards_cover_the_suite_with_each_tasks_categories(suite):
+    import cv2
+
     from demo_factory.suites import SUITES
     from demo_factory.tasks import get_task
 
     card = (CARDS / suite / "README.md").read_text()
     check_card(card)
-    for name in SUITES[suite]:
-        assert f"| `{name}` | {', '.join(get_task(name).categories)} |" in card
+    for name in SUITES[suite]:  # its episodes (4 train-variation ones, 3 test-variation ones: tools/cards.py), its tags
+        assert f"| `{name}` | 7 | {', '.join(get_task(name).categories)} |" in card
+    sheet = cv2.imread(str(CARDS / suite / "contact_sheet.png"))
+    assert sheet.shape[0] == 24 + 128 * len(SUITES[suite])  # a row per task

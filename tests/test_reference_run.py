@@ -116,7 +116,7 @@ def test_make_reference_pins_its_recipe_and_train_arguments_replace_settings(tmp
 
     from demo_factory.tools.reference_run import SEEN_RECIPE, UNSEEN_RECIPE, hiveformer_run_command, policy_flags
 
-    run = Namespace(task="push_buttons", unseen=False, steps=1500, batch_size=16, text_encoder="one_hot",
+    run = Namespace(task="push_buttons", suite=None, unseen=False, steps=1500, batch_size=16, text_encoder="one_hot",
                     n_history=10, curve=1, train_arg=[])
     command = hiveformer_run_command(run, tmp_path / "train", tmp_path / "out")
     assert set(policy_flags(SEEN_RECIPE)) <= set(command) and "--policy.n_history=10" in command and "--save_freq=500" in command

@@ -5,6 +5,7 @@ from __future__ import annotations
 import re
 import shlex
 import statistics
+import textwrap
 from collections import Counter
 from pathlib import Path
 from string import Template
@@ -45,19 +46,26 @@ def write_card(root: Path, result: ConvertResult, plans: dict[str, SplitPlan], t
 
 
 def contact_sheet(plans: dict[str, SplitPlan], cameras: list[str]) -> np.ndarray:
-    """(H, W, 3) RGB: one row per written split (its first episode's first frame), one column per camera."""
-    rows = []
+    """(H, W, 3) RGB: one row per written split (its first episode's first frame), one column per camera; in a
+    multi-task dataset one row per task (its first episode in the first split that holds it)."""
+    shown: dict[str, Path] = {}  # row label -> recording
     for name, plan in plans.items():
-        if not plan.episodes:
-            continue
-        episode = read_episode(plan.episodes[0].source.path)
-        first = episode.frames[0]
+        for planned in plan.episodes:
+            shown.setdefault(planned.source.task, planned.source.path)
+    if len(shown) == 1:
+        shown = {name: plan.episodes[0].source.path for name, plan in plans.items() if plan.episodes}
+    rows = []
+    for name, path in shown.items():
+        first = read_episode(path).frames[0]
         images = [first.cameras[c].rgb for c in cameras]
         height = images[0].shape[0]
         scale = max(1, 128 // height)
         images = [cv2.resize(im, None, fx=scale, fy=scale, interpolation=cv2.INTER_NEAREST) for im in images]
         label = np.full((images[0].shape[0], LABEL_WIDTH, 3), 255, np.uint8)
-        cv2.putText(label, name, (6, label.shape[0] // 2 + 5), cv2.FONT_HERSHEY_SIMPLEX, 0.45, (0, 0, 0), 1, cv2.LINE_AA)
+        lines = textwrap.wrap(name.replace("_", " "), 22)  # a task's name over lines that fit the label
+        for k, line in enumerate(lines):
+            y = label.shape[0] // 2 + 5 + 16 * (k - (len(lines) - 1) / 2)
+            cv2.putText(label, line, (6, int(y)), cv2.FONT_HERSHEY_SIMPLEX, 0.45, (0, 0, 0), 1, cv2.LINE_AA)
         rows.append(np.concatenate([label, *images], axis=1))
     header = np.full((24, rows[0].shape[1], 3), 255, np.uint8)
     column = rows[0].shape[1] - LABEL_WIDTH
@@ -233,10 +241,12 @@ def render_card(result: ConvertResult, template: Path = TEMPLATE) -> str:
         members = [get_task(name) for name in SUITES[result.task]]
         task_text = (f"The {result.task} suite ({SUITE_DESCRIPTIONS[result.task]}) in one multi-task dataset: "
                      "each frame's `task` string is its episode's instruction.\n\n"
-                     "| task | categories | variations (train / test) | goal |\n|---|---|---|---|\n"
-                     + "\n".join(f"| `{t.name}` | {', '.join(t.categories)} | {len(t.split_variations('train'))} / "
+                     "| task | episodes | categories | variations (train / test) | goal |\n|---|---|---|---|---|\n"
+                     + "\n".join(f"| `{t.name}` | {sum(s.task == t.name for s in result.sources)} | "
+                                  f"{', '.join(t.categories)} | {len(t.split_variations('train'))} / "
                                   f"{len(t.split_variations('test'))} ({t.variation_kind}) | {t.description} |"
-                                  for t in members))
+                                  for t in members if any(s.task == t.name for s in result.sources))
+                     + "\n\nThe contact sheet shows the first frame of each task's first episode.")
     else:
         task_text = result.task
     human_text, human_licence = _human_text(result, result.task)

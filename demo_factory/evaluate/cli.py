@@ -47,8 +47,10 @@ def add_parser(commands) -> argparse.ArgumentParser:
                                           "use each split's variations and instructions")
     parser.add_argument("--splits", help="comma-separated splits (default: every split of the dataset; "
                                          f"without --dataset: {','.join(TASK_SPLITS)})")
-    parser.add_argument("--task", choices=list(TASKS), help="task, when no --dataset is given")
-    parser.add_argument("--episodes", type=positive_int, default=100, help="episodes per split (default: 100)")
+    parser.add_argument("--task", choices=list(TASKS),
+                        help="task, when no --dataset is given; with a multi-task --dataset, evaluate that task only")
+    parser.add_argument("--episodes", type=positive_int, default=100,
+                        help="episodes per split, of each task in a multi-task dataset (default: 100)")
     parser.add_argument("--seed", type=int, default=0, help="base evaluation seed (default: 0)")
     parser.add_argument("--step-slack", type=int, default=2,
                         help="extra steps beyond the expert's keyframe count (default: 2)")
@@ -110,6 +112,7 @@ def _control(args, export: dict | None, source: str) -> Control:
 
 
 def _plan(args) -> tuple[str, dict[str, list], tuple[int, int], Control]:
+    from demo_factory.convert.converter import read_dataset_provenance
     from demo_factory.evaluate.env import default_episodes
     from demo_factory.evaluate.runner import dataset_export, split_episodes
 
@@ -142,12 +145,13 @@ def _plan(args) -> tuple[str, dict[str, list], tuple[int, int], Control]:
             plan[split] = split_episodes(root / split, split, args.episodes, args.seed)
         except (FileNotFoundError, ValueError, KeyError) as exc:
             raise UsageError(str(exc)) from None
-    tasks = {episodes[0].task for episodes in plan.values()}
-    if len(tasks) != 1:
-        raise UsageError(f"--dataset {root}: splits of several tasks ({', '.join(sorted(tasks))})")
-    task = tasks.pop()
-    if args.task and args.task != task:
-        raise UsageError(f"--task {args.task} does not match the dataset's task {task}")
+    tasks = sorted({episode.task for episodes in plan.values() for episode in episodes})
+    if args.task and args.task not in tasks:
+        raise UsageError(f"--task {args.task} is not in --dataset {root}; accepted: {', '.join(tasks)}")
+    if args.task:  # one task of a multi-task dataset
+        plan = {split: [e for e in episodes if e.task == args.task] for split, episodes in plan.items()}
+        tasks = [args.task]
+    task = tasks[0] if len(tasks) == 1 else read_dataset_provenance(root / splits[0])[1]["task"]
     info = json.loads((root / splits[0] / "meta" / "info.json").read_text())
     shapes = [f["shape"] for k, f in info["features"].items() if k.startswith("observation.images.")]
     size = args.image_size or (tuple(shapes[0][:2]) if shapes else (128, 128))
@@ -192,23 +196,27 @@ def run(args) -> int:
         shutil.rmtree(out)
     staging = out.with_name(f".{out.name}.partial")
     shutil.rmtree(staging, ignore_errors=True)
-    env = make_env(task, control.action_space, fps=control.fps, max_seconds=control.max_seconds,
-                   step_slack=args.step_slack, image_size=size, episodes=next(iter(plan.values())))
-    results, records = {}, []
-    try:
-        for split, episodes in plan.items():
-            rows = []
-            bar = tqdm(episodes, desc=f"{policy.name} / {split}", unit="episode", file=sys.stderr)
-            for i, episode in enumerate(bar):
-                record_path = staging / "rollouts" / split / f"{split}_{i:04d}_var{episode.variation_id:04d}.mcap" \
-                    if args.record else None
-                rows.append(evaluate_episode(env, policy, episode, record_path))
-                bar.set_postfix(success=f"{100 * sum(r['success'] for r in rows) / len(rows):.1f}%")
-            bar.close()
-            results[split] = summarise(rows)
-            records += rows
-    finally:
-        env.close()
+    rows: dict[str, list[dict]] = {split: [] for split in plan}
+    for each_task in sorted({e.task for episodes in plan.values() for e in episodes}):  # one scene at a time
+        env = make_env(each_task, control.action_space, fps=control.fps, max_seconds=control.max_seconds,
+                       step_slack=args.step_slack, image_size=size,
+                       episodes=[e for episodes in plan.values() for e in episodes if e.task == each_task])
+        try:
+            for split, episodes in plan.items():
+                done = rows[split]
+                bar = tqdm([e for e in episodes if e.task == each_task], unit="episode", file=sys.stderr,
+                           desc=f"{policy.name} / {split}" + (f" / {each_task}" if each_task != task else ""))
+                for episode in bar:
+                    name = f"{split}_{len(done):04d}_{episode.task}_var{episode.variation_id:04d}.mcap"
+                    record_path = staging / "rollouts" / split / name if args.record else None
+                    done.append(evaluate_episode(env, policy, episode, record_path))
+                    mine = [r for r in done if r["task"] == each_task]
+                    bar.set_postfix(success=f"{100 * sum(r['success'] for r in mine) / len(mine):.1f}%")
+                bar.close()
+        finally:
+            env.close()
+    results = {split: summarise(split_rows) for split, split_rows in rows.items()}
+    records = [row for split_rows in rows.values() for row in split_rows]
     write_results(staging, policy.name, task, results, asdict(control))
     with open(staging / "episodes.jsonl", "w") as stream:
         for row in records:
@@ -221,5 +229,10 @@ def run(args) -> int:
         reasons = ", ".join(f"{k}: {v}" for k, v in summary["failure_reasons"].items()) or "none"
         print(f"  {split:<24} success {100 * summary['success_rate']:5.1f}%  over {summary['episodes']} episodes, "
               f"mean steps {summary['mean_steps']:.1f}; failures: {reasons}")
+        for name, figures in summary.get("per_task", {}).items():
+            reasons = ", ".join(f"{k}: {v}" for k, v in figures["failure_reasons"].items()) or "none"
+            print(f"    {name:<36} {100 * figures['success_rate']:5.1f}%  over {figures['episodes']}; failures: {reasons}")
+        if "task_average" in summary:
+            print(f"    {'average over the tasks':<36} {100 * summary['task_average']:5.1f}%")
     print(f"results: {out / 'results.md'}, {out / 'results.json'}, {out / 'results.png'}")
     return 0

@@ -21,18 +21,26 @@ PAPER_RESULTS = {
               "test_unseen_human": 24.1},
 }
 
+# The paper's Table 1 (the ten tasks of the `ten_tasks` suite, ~100 demonstrations a task): averages over the tasks.
+PAPER_TASK_AVERAGES = {
+    "ten_tasks": {"HiveFormer, multi-task (paper)": 83.3, "HiveFormer, single-task (paper)": 88.4,
+                  "LanCon-Learn with history (paper)": 57.4},
+}
+
 
 def split_episodes(dataset_split_root: Path, split: str, count: int, base_seed: int = 0) -> list[EvalEpisode]:
-    """Evaluation episodes for one converted split: its (variation, instruction) pairs, cycled,
-    each in a fresh scene from an evaluation seed (never a generation seed)."""
+    """Evaluation episodes for one converted split: ``count`` per task (a multi-task dataset holds several), its
+    (variation, instruction) pairs cycled, each in a fresh scene from an evaluation seed (never a generation seed)."""
     _, provenance = read_dataset_provenance(dataset_split_root)
-    task = provenance["task"]
-    pairs = sorted({(e["variation_id"], e["instruction"]) for e in provenance["episodes"]})
-    return [
-        EvalEpisode(task, split, pairs[i % len(pairs)][0], pairs[i % len(pairs)][1],
-                    evaluation_seed(base_seed, task, split, i))
-        for i in range(count)
-    ]
+    pairs = defaultdict(set)
+    for e in provenance["episodes"]:
+        pairs[e.get("task", provenance["task"])].add((e["variation_id"], e["instruction"]))
+    episodes = []
+    for task, task_pairs in sorted(pairs.items()):
+        ordered = sorted(task_pairs)
+        episodes += [EvalEpisode(task, split, *ordered[i % len(ordered)], evaluation_seed(base_seed, task, split, i))
+                     for i in range(count)]
+    return episodes
 
 
 def dataset_export(dataset_split_root: Path) -> dict:
@@ -119,6 +127,13 @@ def summarise(records: list[dict]) -> dict:
             "failure_subgoals": {reason: dict(sorted(counts.items())) for reason, counts in subgoals.items()},
         }
 
+    by_task = defaultdict(list)
+    for r in records:
+        by_task[r["task"]].append(r)
+    if len(by_task) > 1:  # a multi-task evaluation: each task's figures, and their mean as the paper averages them
+        per_task = {task: summarise(rows) for task, rows in sorted(by_task.items())}
+        return {**block(records), "task_average": float(np.mean([t["success_rate"] for t in per_task.values()])),
+                "per_task": per_task}
     by_variation = defaultdict(list)
     for r in records:
         by_variation[r["variation_id"]].append(r)
@@ -143,6 +158,7 @@ def write_results(out: Path, policy_name: str, task: str, results: dict[str, dic
     (out / "results.md").write_text(
         f"# Closed-loop success rate (%) — {task}\n\n{header}{row}\nEpisodes per split: {episodes}.\n"
         "Paper figures: HiveFormer (CoRL 2022), Table 3 (seen = train variations).\n" + failure_table(results)
+        + "".join(task_table(policy_name, task, split, summary) for split, summary in results.items())
     )
     _bar_chart(out / "results.png", policy_name, task, results)
 
@@ -163,6 +179,31 @@ def failure_table(results: dict[str, dict]) -> str:
     return f"\n## Failed episodes by reason\n\n{header}{rows}{failed}"
 
 
+def task_table(policy_name: str, suite: str, split: str, summary: dict) -> str:
+    """A multi-task split in the paper's Table 1 layout (a row per policy, a column per task, their average), then
+    its failures per task and reason; "" for a single task."""
+    if "per_task" not in summary:
+        return ""
+    tasks = summary["per_task"]
+    reasons = Counter()
+    for figures in tasks.values():
+        reasons.update(figures["failure_reasons"])
+    lines = [f"\n## {split}: success per task (%)\n", "| policy | " + " | ".join(tasks) + " | average |",
+             "|---|" + "---:|" * (len(tasks) + 1),
+             f"| {policy_name} | " + " | ".join(f"{100 * t['success_rate']:.1f}" for t in tasks.values())
+             + f" | {100 * summary['task_average']:.1f} |"]
+    lines += [f"| {name} | " + " | ".join("–" for _ in tasks) + f" | {average:.1f} |"
+              for name, average in PAPER_TASK_AVERAGES.get(suite, {}).items() if split in ("train", "val")]
+    if reasons:
+        lines += [f"\n## {split}: failed episodes per task and reason\n",
+                  "| task | episodes | " + " | ".join(reason for reason, _ in reasons.most_common()) + " |",
+                  "|---|---:|" + "---:|" * len(reasons)]
+        lines += [f"| {name} | {t['episodes']} | "
+                  + " | ".join(str(t["failure_reasons"].get(reason, 0)) for reason, _ in reasons.most_common()) + " |"
+                  for name, t in tasks.items()]
+    return "\n".join(lines) + "\n"
+
+
 def _bar_chart(path: Path, policy_name: str, task: str, results: dict[str, dict]) -> None:
     import matplotlib
 
@@ -170,9 +211,20 @@ def _bar_chart(path: Path, policy_name: str, task: str, results: dict[str, dict]
     import matplotlib.pyplot as plt
 
     splits = list(results)
-    figure, axis = plt.subplots(figsize=(1.6 * len(splits) + 2, 3.2), dpi=100)
-    bars = axis.bar(splits, [100 * results[s]["success_rate"] for s in splits], color="#4C72B0")
-    axis.bar_label(bars, fmt="%.0f%%")
+    tasks = list(results[splits[0]].get("per_task", {}))
+    if tasks:  # a multi-task evaluation: a group of bars per task, one bar per split
+        figure, axis = plt.subplots(figsize=(0.9 * len(tasks) * len(splits) + 2, 3.8), dpi=100)
+        width = 0.8 / len(splits)
+        for k, split in enumerate(splits):
+            heights = [100 * results[split]["per_task"].get(t, {}).get("success_rate", 0.0) for t in tasks]
+            bars = axis.bar(np.arange(len(tasks)) + k * width, heights, width, label=split)
+            axis.bar_label(bars, fmt="%.0f", fontsize=7)
+        axis.set_xticks(np.arange(len(tasks)) + 0.4 - width / 2, tasks, fontsize=7)
+        axis.legend(fontsize=7)
+    else:
+        figure, axis = plt.subplots(figsize=(1.6 * len(splits) + 2, 3.2), dpi=100)
+        bars = axis.bar(splits, [100 * results[s]["success_rate"] for s in splits], color="#4C72B0")
+        axis.bar_label(bars, fmt="%.0f%%")
     axis.set_ylim(0, 105)
     axis.set_ylabel("success rate (%)")
     axis.set_title(f"{task}: {policy_name}")

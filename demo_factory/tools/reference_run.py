@@ -4,6 +4,7 @@
     python -m demo_factory.tools.reference_run --policy act [--out outputs/reference_act]     (or `make reference-act`)
     python -m demo_factory.tools.reference_run --task tower [--out outputs/reference_tower]   (or `make reference-tower`)
     python -m demo_factory.tools.reference_run --unseen [--out outputs/reference_unseen]     (or `make reference-unseen`)
+    python -m demo_factory.tools.reference_run --suite ten_tasks [--out outputs/reference_ten_tasks]   (`make reference-suite`)
 
 The whole chain with the real components and the commands a user runs: `demo-factory generate` (push_buttons
 or tower demonstrations of a few train variations, one of each length, plus test-variation episodes for the
@@ -22,6 +23,8 @@ With `--unseen` the run is built to show instructions followed that were never s
 variations 0-99 (6 episodes each), pretrained MiniLM's context-free word-piece instruction features, windows
 as `make reference` with the authors' 4-channel CNN stem, the test episodes on the paper's test variations that
 the authors' human-written sentences name, and a learning curve of both the seen and the unseen-synthetic success.
+With `--suite NAME` it trains one multi-task policy over a suite's tasks in the paper's Table 1 setting (each
+task's first train variation, its synthetic instructions) and reports success per task and their average.
 At the end it prints the results table (also `OUT/eval/results.md`, `results.json`, `results.png`)
 and writes `OUT/reference_run.json` (configuration, stage wall times, success rates) and, with a
 learning curve, prints it and plots it to `OUT/learning_curve.png`.
@@ -45,6 +48,7 @@ from lerobot_policy_hiveformer.configuration_hiveformer import TEXT_ENCODERS
 from demo_factory.convert.converter import read_dataset_provenance
 from demo_factory.convert.usage import act_chunk, act_train_args
 from demo_factory.instructions import shipped_human_instructions
+from demo_factory.suites import SUITES
 from demo_factory.tasks import get_task
 
 BIN = Path(sys.executable).parent
@@ -116,6 +120,11 @@ SEEN_RECIPE = RECIPE | {"instruction_position_embeddings": False}
 # (docs/reference/tower.md).
 TOWER = {"episodes_per_variation": 80, "steps": 6000, "curve": 5}
 TOWER_RECIPE = SEEN_RECIPE | {"lr_schedule": "cosine", "optimizer_lr": 2e-3}
+# `make reference-suite` (--suite NAME): one multi-task HiveFormer over a suite's tasks in the paper's Table 1
+# setting, one variation a task (its first train variation) with its synthetic instructions, TOWER_RECIPE's annealed
+# learning rate; validated on 10 scenes a task, evaluated on 20 new ones a task.
+SUITE = {"episodes_per_variation": 50, "steps": 8000, "curve": 4, "eval_episodes": 20, "validation_episodes": 10}
+SUITE_RECIPE = TOWER_RECIPE
 DENSE_FPS = 20  # the dense export's control rate (ACT)
 RESUME_EVERY = 500  # training steps between checkpoints at most: what an interrupted run can lose
 TRAIN_SEED = 1000  # lerobot-train's own default
@@ -147,7 +156,9 @@ def hiveformer_run_command(args: argparse.Namespace, dataset_root: Path, output_
     --train-arg replacing the setting of its key."""
     command = train_command(dataset_root, output_dir, args.steps, args.batch_size, args.text_encoder,
                             args.n_history, save_freq=save_interval(args.steps, args.curve))
-    command += policy_flags(UNSEEN_RECIPE if args.unseen else TOWER_RECIPE if args.task == "tower" else SEEN_RECIPE)
+    recipe = (SUITE_RECIPE if args.suite else UNSEEN_RECIPE if args.unseen else TOWER_RECIPE if args.task == "tower"
+              else SEEN_RECIPE)
+    command += policy_flags(recipe)
     return with_arguments(command, args.train_arg)
 
 
@@ -228,8 +239,9 @@ def learning_curve(train: Path, dataset: Path, episodes: int, timings: dict, out
                "--seed", str(VALIDATION_SEED), "--out", str(folder), "--overwrite"], out)
         results = json.loads((folder / "results.json").read_text())["splits"]
         seen = results["train"]
+        parts = "per_task" if "per_task" in seen else "per_variation"
         curve.append({"step": int(checkpoint.name), "success_rate": seen["success_rate"],
-                      "per_variation": {v: r["success_rate"] for v, r in seen["per_variation"].items()},
+                      parts: {name: r["success_rate"] for name, r in seen[parts].items()},
                       **{f"{split}_success_rate": results[split]["success_rate"] for split in splits[1:]}})
     return curve
 
@@ -305,6 +317,11 @@ def parse_arguments(argv=None) -> argparse.Namespace:
                         "outputs/reference_tower, outputs/reference_act)")
     parser.add_argument("--task", choices=sorted(TASK_VARIATIONS), default="push_buttons",
                         help="push_buttons (default) or tower (HiveFormer only)")
+    parser.add_argument("--suite", choices=sorted(SUITES), help="one multi-task HiveFormer over a suite's tasks, one "
+                        "variation a task (its first train variation), as the paper's Table 1 (`make reference-suite`: "
+                        f"ten_tasks); {SUITE['episodes_per_variation']} episodes a task, {SUITE['steps']} steps, "
+                        f"{SUITE['curve']} checkpoints validated on {SUITE['validation_episodes']} scenes a task, the best "
+                        f"evaluated on {SUITE['eval_episodes']} new scenes a task; results in Table 1's layout")
     parser.add_argument("--unseen", action="store_true", help="push_buttons built to follow unseen instructions: "
                         f"the paper's train variations 0-99, {UNSEEN['episodes_per_variation']} episodes each, MiniLM's "
                         f"word-piece instruction features, {UNSEEN['steps']} steps at a learning rate of "
@@ -344,6 +361,8 @@ def parse_arguments(argv=None) -> argparse.Namespace:
                         f"evaluated on the test scenes (default: HiveFormer about one every {VALIDATE_EVERY} steps, "
                         f"tower {TOWER['curve']}, --unseen {UNSEEN['curve']}, ACT 1 = the last only)")
     parser.add_argument("--eval-episodes", type=int, help="evaluation episodes per split (default: 40; ACT: 20)")
+    parser.add_argument("--validation-episodes", type=int, help="validation episodes per checkpoint of the curve "
+                        f"(default: --eval-episodes; --suite: {SUITE['validation_episodes']} a task)")
     parser.add_argument("--workers", type=int, default=2, help="generation processes")
     parser.add_argument("--train-arg", action="append", default=[], metavar="--KEY=VALUE",
                         help="extra lerobot-train argument, repeatable (e.g. --train-arg=--policy.whole_episodes=true); "
@@ -351,6 +370,10 @@ def parse_arguments(argv=None) -> argparse.Namespace:
     parser.add_argument("--seed", type=int, default=TRAIN_SEED, help="lerobot-train's seed: other seeds show how "
                         f"much the result varies with the initial weights and batch order (default: {TRAIN_SEED})")
     args = parser.parse_args(argv)
+    if args.suite and (args.policy != "hiveformer" or args.unseen or args.task != "push_buttons" or args.variation
+                       or args.extra_episodes or args.test_episodes or args.human_instructions):
+        parser.error(f"--suite {args.suite}: a HiveFormer run of the suite's tasks, one variation each; without "
+                     "--policy, --task, --unseen, --variation, --extra-episodes, --test-episodes, --human-instructions")
     if args.policy != "hiveformer" and args.task != "push_buttons":
         parser.error(f"--task {args.task}: the {args.policy} reference run is push_buttons only")
     if args.unseen and (args.policy != "hiveformer" or args.task != "push_buttons"):
@@ -371,14 +394,14 @@ def parse_arguments(argv=None) -> argparse.Namespace:
                      + ("not a file" if args.unseen else "only with --unseen"))
     if args.train_variations is not None and not (args.unseen and 1 <= args.train_variations <= 100):
         parser.error(f"--train-variations {args.train_variations}: with --unseen, 1 to 100 (the paper's train ids)")
-    seen_run = args.policy == "hiveformer" and not args.unseen
+    seen_run = args.policy == "hiveformer" and not args.unseen and not args.suite
     if args.extra_episodes is not None and (args.extra_episodes < 0 or (args.extra_episodes and not seen_run)):
         parser.error(f"--extra-episodes {args.extra_episodes}: a number >= 0, above 0 only for HiveFormer runs "
                      "without --unseen")
     if args.extra_episodes is None:
         args.extra_episodes = EXTRA_EPISODES[args.task] if seen_run else 0
     defaults = ({"text_encoder": REFERENCE_TEXT_ENCODER} | PRESETS[args.policy] | (UNSEEN if args.unseen else {})
-                | (TOWER if args.task == "tower" else {}))
+                | (TOWER if args.task == "tower" else {}) | (SUITE | {"test_episodes": 0} if args.suite else {}))
     for name, value in defaults.items():
         if name != "variations" and getattr(args, name, None) is None:
             setattr(args, name, value)
@@ -386,8 +409,12 @@ def parse_arguments(argv=None) -> argparse.Namespace:
         args.curve = default_curve(args.steps) if args.policy == "hiveformer" else 1
     if args.curve < 1 or args.steps % args.curve:
         parser.error(f"--curve {args.curve}: a positive number of checkpoints that divides --steps {args.steps}")
+    args.validation_episodes = args.validation_episodes or (SUITE["validation_episodes"] if args.suite
+                                                            else args.eval_episodes)
     args.variations = args.variation or list(PRESETS[args.policy]["variations"] if args.policy != "hiveformer"
                                              else TASK_VARIATIONS[args.task])
+    if args.suite:  # each task's first train variation, the paper's one variation a task
+        args.variations = {task: str(get_task(task).split_variations("train")[0].id) for task in SUITES[args.suite]}
     if args.unseen and not args.variation:
         paper_train_ids = [str(v.id) for v in get_task("push_buttons").split_variations("train")]  # 0-99
         args.variations = paper_train_ids[:args.train_variations]
@@ -427,15 +454,17 @@ def composability_note(train_variations: list[str]) -> str | None:
             "each colour word at its place in the instruction cannot follow them")
 
 
-def generate_command(args: argparse.Namespace) -> list[str]:
-    """`demo-factory generate` in the run's task, camera size and worker count; the caller adds the episodes."""
-    return [str(BIN / "demo-factory"), "generate", "--task", args.task, "--image-size", str(args.image_size),
+def generate_command(args: argparse.Namespace, task: str | None = None) -> list[str]:
+    """`demo-factory generate` in the run's task (or `task`), camera size and worker count; the caller adds the
+    episodes."""
+    return [str(BIN / "demo-factory"), "generate", "--task", task or args.task, "--image-size", str(args.image_size),
             "--workers", str(args.workers), *(["--dense-fps", str(DENSE_FPS)] if args.policy != "hiveformer" else [])]
 
 
-def train_generation_command(args: argparse.Namespace, variations: list[str], episodes: int) -> list[str]:
+def train_generation_command(args: argparse.Namespace, variations: list[str], episodes: int,
+                             task: str | None = None) -> list[str]:
     """`demo-factory generate` of `episodes` training episodes of each of `variations` (without --out)."""
-    return generate_command(args) + ["--split", "train", *[f"--variation={v}" for v in variations],
+    return generate_command(args, task) + ["--split", "train", *[f"--variation={v}" for v in variations],
                                      "--episodes-per-variation", str(episodes)]
 
 
@@ -473,15 +502,21 @@ def main(argv=None) -> int:
     if args.unseen and (note := composability_note(args.variations)):
         print(note, flush=True)
     dense = args.policy != "hiveformer"
-    suffix = "_act" if dense else "_unseen" if args.unseen else "" if args.task == "push_buttons" else "_tower"
+    suffix = ("_act" if dense else f"_{args.suite}" if args.suite else "_unseen" if args.unseen else ""
+              if args.task == "push_buttons" else "_tower")
     out = args.out or Path("outputs/reference" + suffix)
     out.mkdir(parents=True, exist_ok=True)
     timings: dict = {}
     began = time.time()
 
     raw, dataset, train, evaluation = out / "raw", out / "dataset", out / "train", out / "eval"
-    generation_stage("generate_train", raw / "train", timings,
-                     train_generation_command(args, args.variations, args.episodes_per_variation), out)
+    if args.suite:  # each task's episodes in a folder of its own: one multi-task dataset
+        for task, variation in args.variations.items():
+            generation_stage(f"generate_train_{task}", raw / "train" / task, timings,
+                             train_generation_command(args, [variation], args.episodes_per_variation, task), out)
+    else:
+        generation_stage("generate_train", raw / "train", timings,
+                         train_generation_command(args, args.variations, args.episodes_per_variation), out)
     if extra := extra_generation_command(args):
         generation_stage("generate_train_extra", raw / "train_extra", timings, extra, out)
     if test := generate_test_command(args):
@@ -503,7 +538,7 @@ def main(argv=None) -> int:
     if "train" in timings:  # trained (or resumed) now: any earlier evaluation was of other weights
         for folder in (out / "validation", evaluation):
             shutil.rmtree(folder, ignore_errors=True)
-    curve = (learning_curve(train, dataset, args.eval_episodes, timings, out, args.steps // args.curve,
+    curve = (learning_curve(train, dataset, args.validation_episodes, timings, out, args.steps // args.curve,
                             CURVE_SPLITS[args.unseen])
              if args.curve > 1 else [])
     chosen = selected_step(curve) if curve else args.steps
@@ -522,11 +557,13 @@ def main(argv=None) -> int:
     (out / "reference_run.json").write_text(json.dumps(summary, indent=2, default=str) + "\n")
     print((evaluation / "results.md").read_text())
     if curve:
-        plot_learning_curve(out / "learning_curve.png", curve, f"{args.task}: HiveFormer, seed {args.seed}")
+        plot_learning_curve(out / "learning_curve.png", curve, f"{args.suite or args.task}: HiveFormer, seed {args.seed}")
         unseen = "test_unseen_synthetic_success_rate"
         print("Learning curve on validation scenes (seen variations" + (" / unseen synthetic" if args.unseen else "")
               + "): " + ", ".join(f"step {c['step']}: {100 * c['success_rate']:.1f}"
                                   + (f" / {100 * c[unseen]:.1f}" if unseen in c else "") + " %" for c in curve))
+        for task in curve[0].get("per_task", {}):
+            print(f"  {task:<36} " + ", ".join(f"{100 * point['per_task'][task]:.0f}" for point in curve) + " %")
         print(f"Evaluated above: the step-{chosen} checkpoint, the best on the validation scenes", flush=True)
     print(f"reference run: {summary['wall_seconds_this_invocation']:.0f} s; figures in {out / 'reference_run.json'}")
     return 0

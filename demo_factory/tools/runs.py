@@ -51,6 +51,8 @@ RECIPES = {
                                     "HiveFormer paper, CLIP (push buttons)", ("100", "86.3", "85.6", "74.2")),
     "make reference-tower": Recipe("tower, 3 seen variations, one-hot", "docs/reference/tower.md",
                                    "HiveFormer paper, CLIP (tower)", ("77.4", "56.2", "53.6", "24.1")),
+    "make reference-suite": Recipe("ten_tasks, one variation a task, one-hot", "docs/reference/suite.md",
+                                   "HiveFormer paper, multi-task (Table 1)", ("83.3", "", "", "")),
     "make reference-act": Recipe("ACT, 1 push_buttons variation, dense", "docs/reference/act.md"),
 }
 
@@ -144,10 +146,11 @@ def run_row(summary: dict, note: str, recipe: str | None = None, status: str = "
     config = summary["configuration"]
     splits = summary["results"]["splits"]
     if recipe is None:
-        recipe = ("make reference-act" if config.get("policy") == "act" else "make reference-unseen"
-                  if config.get("unseen") else "make reference-tower" if config.get("task") == "tower"
-                  else "make reference")
+        recipe = ("make reference-act" if config.get("policy") == "act" else "make reference-suite"
+                  if config.get("suite") else "make reference-unseen" if config.get("unseen")
+                  else "make reference-tower" if config.get("task") == "tower" else "make reference")
     command = ["python -m demo_factory.tools.reference_run"]
+    command += [f"--suite {config['suite']}"] if config.get("suite") else []
     command += [f"--task {config['task']}"] if config.get("task", "push_buttons") != "push_buttons" else []
     command += ["--unseen"] if config.get("unseen") else []
     command += [f"--policy {config['policy']}"] if config.get("policy", "hiveformer") != "hiveformer" else []
@@ -155,7 +158,7 @@ def run_row(summary: dict, note: str, recipe: str | None = None, status: str = "
     step = summary.get("train_step", {}).get("updt_s")
     return {
         "date": datetime.date.today().isoformat(), "commit": _git_commit(), "command": " ".join(command),
-        "recipe": recipe, "task": config.get("task", "push_buttons"), "seed": str(config["seed"]),
+        "recipe": recipe, "task": config.get("suite") or config.get("task", "push_buttons"), "seed": str(config["seed"]),
         "steps": str(config["steps"]), "s_per_step": f"{step:.3f}" if step else "",
         "wall_min": f"{sum(summary['stage_seconds'].values()) / 60:.0f}",
         **{column: f"{100 * splits[split]['success_rate']:.1f}" if split in splits else ""
