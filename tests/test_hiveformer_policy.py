@@ -784,6 +784,25 @@ def test_minilm_is_a_real_pretrained_encoder_that_needs_no_download(tiny_dataset
     assert math.isfinite(loss.item())
 
 
+def test_loading_minilm_prints_nothing_alarming_and_a_real_mismatch_is_raised(tmp_path, capfd):
+    import shutil
+
+    from safetensors.torch import load_file, save_file
+
+    from lerobot_policy_hiveformer.modeling_hiveformer import _load_text_model, minilm_model_dir
+
+    model = _load_text_model(minilm_model_dir())  # its checkpoint holds position ids that BERT now builds itself
+    assert model.config.hidden_size == 384
+    printed = capfd.readouterr()
+    assert "LOAD REPORT" not in printed.err + printed.out and "UNEXPECTED" not in printed.err + printed.out
+    broken = tmp_path / "minilm"
+    shutil.copytree(minilm_model_dir(), broken)
+    weights = load_file(broken / "model.safetensors")
+    save_file({k: v for k, v in weights.items() if "pooler" not in k}, broken / "model.safetensors")
+    with pytest.raises(ValueError, match="missing: .*pooler"):
+        _load_text_model(broken)
+
+
 def test_minilm_words_gives_a_word_the_same_features_wherever_it_stands(tiny_dataset_root):
     policy = make_tiny_policy(tiny_dataset_root, text_encoder="minilm_words")
     features, mask = policy.instruction_encoder.encode(["press the navy button, then the blue one",

@@ -349,10 +349,10 @@ class PretrainedTransformerInstructionEncoder(InstructionEncoder):
     def __init__(self, model_dir: Path, words_only: bool = False):
         super().__init__()
         self.words_only = words_only
-        from transformers import AutoModel, AutoTokenizer
+        from transformers import AutoTokenizer
 
         self.tokenizer = AutoTokenizer.from_pretrained(model_dir, local_files_only=True)
-        self.text_model = AutoModel.from_pretrained(model_dir, local_files_only=True).eval().requires_grad_(False)
+        self.text_model = _load_text_model(model_dir).eval().requires_grad_(False)
         self.feature_dim = self.text_model.config.hidden_size
 
     @torch.no_grad()
@@ -366,6 +366,37 @@ class PretrainedTransformerInstructionEncoder(InstructionEncoder):
             hidden = self.text_model(**tokens).last_hidden_state
         lengths = tokens["attention_mask"].sum(dim=1).tolist()
         return [hidden[i, :length].float() for i, length in enumerate(lengths)]
+
+
+# Buffers a checkpoint may hold that the model now builds itself: BERT's position ids.
+REBUILT_BUFFERS = {"embeddings.position_ids"}
+
+
+def _load_text_model(model_dir: Path):
+    """A local BERT-style model, checked here instead of by transformers' load report: that report lists a
+    checkpoint's saved position ids as UNEXPECTED and a progress bar prints at every load, which reads as an error
+    at every evaluation. Both are off during the load only; a real mismatch of weights is raised."""
+    import logging
+
+    from transformers import AutoModel
+    from transformers.utils import logging as transformers_logging
+
+    report = logging.getLogger("transformers.modeling_utils")
+    level, bars = report.level, transformers_logging.is_progress_bar_enabled()
+    report.setLevel(logging.ERROR)
+    transformers_logging.disable_progress_bar()
+    try:
+        model, info = AutoModel.from_pretrained(model_dir, local_files_only=True, output_loading_info=True)
+    finally:
+        report.setLevel(level)
+        if bars:
+            transformers_logging.enable_progress_bar()
+    unexpected = set(info["unexpected_keys"]) - REBUILT_BUFFERS
+    if info["missing_keys"] or unexpected or info["mismatched_keys"]:
+        raise ValueError(f"{model_dir}: its weights do not fit {type(model).__name__} (missing: "
+                         f"{sorted(info['missing_keys'])}, unexpected: {sorted(unexpected)}, "
+                         f"mismatched: {sorted(info['mismatched_keys'])})")
+    return model
 
 
 def minilm_model_dir() -> Path:
