@@ -217,3 +217,18 @@ def test_the_other_goal_of_a_few_is_named(task, wrong, reason):
     record = run(task, Scripted(wrong))
     assert (record["failure_reason"], record["failure_subgoal"]) == (reason, 1), record
     assert "instructed" in record["failure_detail"]
+
+
+# -- pick_and_lift: where the lift went wrong ---------------------------------------------------------
+def test_pick_and_lift_names_a_lift_off_target_a_wrong_block_and_a_missed_grasp():
+    def short_of_target(env):  # the expert's grasp, then the lift stopping 10 cm below the sphere
+        keyframes = env.expert_keyframes
+        return [*keyframes[:-1], raised(keyframes[-1], -0.10)]
+
+    record = run("pick_and_lift", Scripted(short_of_target))
+    assert (record["failure_reason"], record["failure_subgoal"]) == ("block off target", 1), record
+    assert "cm from the target sphere" in record["failure_detail"]
+    record = run("pick_and_lift", Scripted(lambda env: env.sim_task.wrong_keyframes(env.world)))
+    assert record["failure_reason"] == "wrong block picked" and "instructed" in record["failure_detail"]
+    assert run("pick_and_lift", CurrentPosePolicy())["failure_reason"] == "block not held"
+    assert run("pick_and_lift", Scripted(lambda env: env.expert_keyframes))["failure_reason"] is None

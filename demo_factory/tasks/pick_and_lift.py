@@ -6,7 +6,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from demo_factory.tasks import motions
-from demo_factory.tasks.base import KeyframeTarget, Task, spread_positions
+from demo_factory.tasks.base import Failure, KeyframeTarget, Task, spread_positions
 from demo_factory.tasks.objects import held, marker
 from demo_factory.tasks.palette import TOWER_COLOURS, rgba
 from demo_factory.tasks.variations import Variation
@@ -71,6 +71,19 @@ class PickAndLift(Task):
         block = self.blocks[self.instructed]
         position, _ = world.body_pose(block)
         return float(np.linalg.norm(position - self.target)) < TOLERANCE and held(world, block)
+
+    def failure(self, world) -> Failure | None:
+        """"wrong block picked" when a distractor is in the gripper; "block off target" when the instructed block is
+        held away from the target sphere; "block not held" when it is not in the gripper."""
+        wrong = next((c for c, b in self.blocks.items() if c != self.instructed and held(world, b)), None)
+        if wrong is not None:
+            return Failure("wrong block picked", 1, f"holding the {wrong} block where {self.instructed} was instructed")
+        block = self.blocks[self.instructed]
+        if held(world, block):
+            distance = float(np.linalg.norm(world.body_pose(block)[0] - self.target))
+            return Failure("block off target", 1, f"the {self.instructed} block is held {100 * distance:.1f} cm from "
+                                                  f"the target sphere (within {100 * TOLERANCE:.0f} cm counts)")
+        return Failure("block not held", 1, f"the {self.instructed} block is not in the gripper")
 
     def scene_facts(self) -> dict:
         return {"target": [round(float(v), 6) for v in self.target],
