@@ -106,3 +106,19 @@ def test_a_multi_task_card_counts_each_tasks_episodes_and_pictures_every_task(tw
         assert f"| `{task}` | 1 |" in card
     sheet = cv2.imread(str(two_task_dataset / "contact_sheet.png"))
     assert sheet.shape[0] == 24 + 2 * 128  # a header, then a row per task (one split: one row before)
+
+
+def test_lerobot_evals_env_takes_a_tasks_episodes_from_a_multi_task_dataset(two_task_dataset):
+    from demo_factory.evaluate.lerobot_env import DemoFactoryEnv
+
+    env = DemoFactoryEnv(task="open_drawer", split="train", dataset=str(two_task_dataset))
+    episodes = env.gym_kwargs["episodes"]
+    trained = {e["variation_id"] for e in read_dataset_provenance(two_task_dataset / "train")[1]["episodes"]
+               if e["task"] == "open_drawer"}
+    assert len(episodes) == 100 and {e.task for e in episodes} == {"open_drawer"}
+    assert {e.variation_id for e in episodes} == trained
+    with pytest.raises(ValueError, match="holds no tower episode in its 'train' split"):
+        DemoFactoryEnv(task="tower", split="train", dataset=str(two_task_dataset))
+    with pytest.raises(ValueError, match="has no converted 'test' split"):
+        DemoFactoryEnv(task="open_drawer", split="test", dataset=str(two_task_dataset))
+    assert "episodes" not in DemoFactoryEnv(task="open_drawer").gym_kwargs

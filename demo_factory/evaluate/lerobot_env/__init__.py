@@ -18,6 +18,7 @@ dataset's (``observation.depth.<cam>``, ``observation.calibration.<cam>``).
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import gymnasium as gym
 from lerobot.configs.types import FeatureType, PolicyFeature
@@ -71,6 +72,10 @@ class DemoFactoryEnv(EnvConfig):
     image_width: int = 128
     step_slack: int = DEFAULT_STEP_SLACK  # steps allowed beyond the expert's keyframe count
     base_seed: int = 0  # evaluation scene seeds derive from it (never a generation seed)
+    # A converted dataset (its folder of splits): the episodes are its `split`'s variations and instructions of
+    # `task`, as `demo-factory eval --dataset` draws them; a multi-task checkpoint is evaluated on the variations
+    # it trained on. Empty: every variation of the task's split.
+    dataset: str = ""
     features: dict[str, PolicyFeature] = field(default_factory=lambda: _features(128, 128))
     features_map: dict[str, str] = field(default_factory=_features_map)
 
@@ -81,9 +86,23 @@ class DemoFactoryEnv(EnvConfig):
             raise ValueError(f"unknown action_space {self.action_space!r}; accepted: {', '.join(EVAL_ACTION_SPACES)}")
         control_period(self.fps)
         self.features = _features(self.image_height, self.image_width)
+        if self.dataset and not self.dataset_episodes():
+            raise ValueError(f"dataset {self.dataset!r} holds no {self.task} episode in its {self.split!r} split")
+
+    def dataset_episodes(self) -> list:
+        """The dataset's evaluation episodes of this task (100, cycling its variations), or [] without a dataset."""
+        if not self.dataset:
+            return []
+        from demo_factory.evaluate.runner import split_episodes
+
+        split = Path(self.dataset) / self.split
+        if not (split / "meta" / "info.json").is_file():
+            raise ValueError(f"dataset {self.dataset!r} has no converted {self.split!r} split")
+        return [e for e in split_episodes(split, self.split, 100, self.base_seed) if e.task == self.task]
 
     @property
     def gym_kwargs(self) -> dict:
         return {"split": self.split, "image_size": (self.image_height, self.image_width),
                 "step_slack": self.step_slack, "base_seed": self.base_seed, "action_space": self.action_space,
-                "fps": self.fps, "max_seconds": self.max_seconds}
+                "fps": self.fps, "max_seconds": self.max_seconds,
+                **({"episodes": self.dataset_episodes()} if self.dataset else {})}
