@@ -203,16 +203,16 @@ def run(args) -> int:
                        episodes=[e for episodes in plan.values() for e in episodes if e.task == each_task])
         try:
             for split, episodes in plan.items():
-                done = rows[split]
+                mine: list[dict] = []  # this task's rows of the split
                 bar = tqdm([e for e in episodes if e.task == each_task], unit="episode", file=sys.stderr,
                            desc=f"{policy.name} / {split}" + (f" / {each_task}" if each_task != task else ""))
                 for episode in bar:
-                    name = f"{split}_{len(done):04d}_{episode.task}_var{episode.variation_id:04d}.mcap"
+                    name = f"{split}_{len(rows[split]) + len(mine):04d}_{episode.task}_var{episode.variation_id:04d}.mcap"
                     record_path = staging / "rollouts" / split / name if args.record else None
-                    done.append(evaluate_episode(env, policy, episode, record_path))
-                    mine = [r for r in done if r["task"] == each_task]
+                    mine.append(evaluate_episode(env, policy, episode, record_path))
                     bar.set_postfix(success=f"{100 * sum(r['success'] for r in mine) / len(mine):.1f}%")
                 bar.close()
+                rows[split] += mine
         finally:
             env.close()
     results = {split: summarise(split_rows) for split, split_rows in rows.items()}

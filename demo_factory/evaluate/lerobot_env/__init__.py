@@ -86,7 +86,8 @@ class DemoFactoryEnv(EnvConfig):
             raise ValueError(f"unknown action_space {self.action_space!r}; accepted: {', '.join(EVAL_ACTION_SPACES)}")
         control_period(self.fps)
         self.features = _features(self.image_height, self.image_width)
-        if self.dataset and not self.dataset_episodes():
+        self._dataset_episodes = self.dataset_episodes()  # read once: gym_kwargs hands them to every env made
+        if self.dataset and not self._dataset_episodes:
             raise ValueError(f"dataset {self.dataset!r} holds no {self.task} episode in its {self.split!r} split")
 
     def dataset_episodes(self) -> list:
@@ -105,4 +106,4 @@ class DemoFactoryEnv(EnvConfig):
         return {"split": self.split, "image_size": (self.image_height, self.image_width),
                 "step_slack": self.step_slack, "base_seed": self.base_seed, "action_space": self.action_space,
                 "fps": self.fps, "max_seconds": self.max_seconds,
-                **({"episodes": self.dataset_episodes()} if self.dataset else {})}
+                **({"episodes": self._dataset_episodes} if self.dataset else {})}
