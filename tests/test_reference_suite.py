@@ -9,7 +9,7 @@ from demo_factory.cli import main as demo_factory
 from demo_factory.convert.converter import read_dataset_provenance
 from demo_factory.suites import SUITES
 from demo_factory.tasks import get_task
-from demo_factory.tools.reference_run import SUITE_RECIPE, hiveformer_run_command, main, parse_arguments
+from demo_factory.tools.reference_run import SUITE_RECIPE, TOWER_RECIPE, hiveformer_run_command, main, parse_arguments
 
 TWO_TASKS = "motion_planner"  # open_drawer and close_drawer: the smallest suite
 
@@ -60,7 +60,8 @@ def test_a_suite_run_takes_each_tasks_first_train_variation_and_its_recipe(tmp_p
     args = parse_arguments(["--suite", "ten_tasks", "--out", str(tmp_path)])
     assert list(args.variations) == list(SUITES["ten_tasks"])
     assert args.variations == {t: str(get_task(t).split_variations("train")[0].id) for t in SUITES["ten_tasks"]}
-    assert (args.steps, args.curve, args.eval_episodes, args.validation_episodes) == (8000, 4, 20, 10)
+    assert (args.steps, args.curve, args.eval_episodes, args.validation_episodes) == (12000, 4, 20, 10)
+    assert SUITE_RECIPE == TOWER_RECIPE  # the converter's multi-task suggestion is tower's annealed recipe
     assert args.extra_episodes == 0 and args.test_episodes == 0 and args.text_encoder == "one_hot"
     command = hiveformer_run_command(args, tmp_path / "dataset", tmp_path / "train")
     assert all(f"--policy.{name}={str(value).lower()}" in command for name, value in SUITE_RECIPE.items())

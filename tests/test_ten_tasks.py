@@ -6,6 +6,7 @@ import pytest
 
 from demo_factory.cli import main
 from demo_factory.collect.pictures import PICTURE_SIZE, pictures_for, render_variation
+from demo_factory.convert.usage import MULTI_TASK_RECIPE, MULTI_TASK_STEPS, policy_flags
 from demo_factory.evaluate.env import KeyframeEnv, default_episodes
 from demo_factory.evaluate.policies import ExpertPolicy
 from demo_factory.evaluate.runner import evaluate_episode
@@ -163,8 +164,14 @@ def test_suite_generates_one_folder_per_task_and_converts_to_one_multi_task_data
     assert "(1 already present)" in capsys.readouterr().out
 
     out = tmp_path / "dataset"
+    capsys.readouterr()
     assert main(["convert", "--in", str(raw), "--out", str(out), "--repo-id", "me/ten_tasks", "--val-ratio", "0",
                  "--no-progress"]) == 0
+    # The suggested training is make reference-suite's recipe and steps, in the summary and on the card.
+    suggested = [line for line in capsys.readouterr().out.splitlines() if "lerobot-train" in line]
+    card = (out / "README.md").read_text()
+    for flag in [*policy_flags(MULTI_TASK_RECIPE), f"--steps={MULTI_TASK_STEPS}"]:
+        assert flag in suggested[0] and flag in " ".join(card.replace("\\\n", " ").split())
     info = json.loads((out / "train" / "meta" / "demo_factory.json").read_text())
     episodes = info["episodes"]
     assert info["task"] == "ten_tasks" and sorted(e["task"] for e in episodes) == sorted(TEN)

@@ -261,7 +261,7 @@ def render_card(result: ConvertResult, template: Path = TEMPLATE) -> str:
     policy = train_policy(result.granularity)
     train_command = quote(train_args(result.granularity, train.repo_id, root, result.cameras, result.image_size,
                                      result.fps, train.shortest_episode, Path(f"outputs/train/{policy}_{result.task}"),
-                                     result.unseen_splits))
+                                     result.unseen_splits, result.multi_task))
     if result.granularity == "dense":
         train_command += "\n" + gate_command(root, act_chunk(train.shortest_episode, result.fps)[0])
     invalid = ""

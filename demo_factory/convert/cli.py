@@ -107,11 +107,13 @@ def training_lines(result: ConvertResult, train, root: Path) -> list[str]:
     """The suggested ``lerobot-train`` command for this export, and for dense exports its gate check."""
     policy = train_policy(result.granularity)
     args = train_args(result.granularity, train.repo_id, root, result.cameras, result.image_size, result.fps,
-                      train.shortest_episode, Path(f"outputs/train/{policy}_{result.task}"), result.unseen_splits)
+                      train.shortest_episode, Path(f"outputs/train/{policy}_{result.task}"), result.unseen_splits,
+                      result.multi_task)
     if result.granularity == "keyframe":
         encoder = ("MiniLM instruction features, which carry to the unseen splits' new instructions"
                    if result.unseen_splits else "one-hot instruction codes")
-        return [f"Train HiveFormer on it (CPU, offline, {encoder}; ACT and diffusion need a dense export: "
+        recipe = "; make reference-suite's recipe for several tasks" if result.multi_task else ""
+        return [f"Train HiveFormer on it (CPU, offline, {encoder}{recipe}; ACT and diffusion need a dense export: "
                 "--granularity dense):", "  " + quote(args)]
     chunk, steps = act_chunk(train.shortest_episode, result.fps)
     return [f"Train ACT on it (CPU, offline): chunks of {chunk} actions ({chunk / result.fps:g} s at {result.fps} fps; "

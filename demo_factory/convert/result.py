@@ -47,6 +47,11 @@ class ConvertResult:
     other_tasks: dict[str, int] = field(default_factory=dict)
 
     @property
+    def multi_task(self) -> bool:
+        """Whether the export holds several tasks' episodes."""
+        return len({s.task for s in self.sources}) > 1
+
+    @property
     def unseen_splits(self) -> bool:
         """Whether any split holds unseen (test) variations."""
         return any(s.name.startswith("test_unseen") for s in self.splits)

@@ -78,10 +78,26 @@ def hiveformer_text_encoder(unseen_splits: bool) -> str:
     return "minilm_words" if unseen_splits else "one_hot"
 
 
+# What a multi-task keyframe export is suggested: `make reference-suite`'s recipe (docs/reference/suite.md), the
+# HiveformerConfig fields it sets and its steps. Windows ending at every keyframe, the 7-channel CNN stem, no
+# instruction position embeddings, the learning rate annealed to 0 from 2e-3.
+MULTI_TASK_RECIPE = {"whole_episodes": False, "stem_point_cloud": True, "instruction_position_embeddings": False,
+                     "lr_schedule": "cosine", "optimizer_lr": 2e-3}
+MULTI_TASK_STEPS = 12000
+
+
+def policy_flags(settings: dict) -> list[str]:
+    """``lerobot-train`` arguments that set these HiveformerConfig fields."""
+    return [f"--policy.{name}={str(value).lower()}" for name, value in settings.items()]
+
+
 def hiveformer_train_args(repo_id: str, root: Path, output_dir: Path, steps: int = 2000, batch_size: int = 16,
-                          log_freq: int = 100, text_encoder: str = "one_hot") -> list[str]:
+                          log_freq: int = 100, text_encoder: str = "one_hot", multi_task: bool = False) -> list[str]:
     """``lerobot-train`` arguments for HiveFormer on a keyframe split: CPU, offline (one-hot codes and MiniLM
-    need no download; ``--policy.text_encoder=clip`` is the paper's, from the Hub), no push, no wandb."""
+    need no download; ``--policy.text_encoder=clip`` is the paper's, from the Hub), no push, no wandb. A
+    multi-task split gets the suite recipe and its steps."""
+    if multi_task:
+        steps = MULTI_TASK_STEPS
     return [
         "lerobot-train",
         "--policy.type=hiveformer",
@@ -97,16 +113,19 @@ def hiveformer_train_args(repo_id: str, root: Path, output_dir: Path, steps: int
         f"--batch_size={batch_size}",
         "--num_workers=1",
         f"--log_freq={log_freq}",
+        *(policy_flags(MULTI_TASK_RECIPE) if multi_task else []),
     ]
 
 
 def train_args(granularity: str, repo_id: str, root: Path, cameras: list[str], image_size: tuple[int, int],
-               fps: int, shortest_episode: int, output_dir: Path | None = None, unseen_splits: bool = False) -> list[str]:
+               fps: int, shortest_episode: int, output_dir: Path | None = None, unseen_splits: bool = False,
+               multi_task: bool = False) -> list[str]:
     """The ``lerobot-train`` arguments that fit an export: HiveFormer on keyframes (with MiniLM instruction
-    features where the export has unseen splits), ACT (with a chunk the shortest episode holds) on dense frames."""
+    features where the export has unseen splits, the suite recipe where it holds several tasks), ACT (with a chunk
+    the shortest episode holds) on dense frames."""
     if granularity == "keyframe":
         return hiveformer_train_args(repo_id, root, output_dir or Path("outputs/train/hiveformer"),
-                                     text_encoder=hiveformer_text_encoder(unseen_splits))
+                                     text_encoder=hiveformer_text_encoder(unseen_splits), multi_task=multi_task)
     return act_train_args(repo_id, root, cameras, image_size, output_dir or Path("outputs/train/act"),
                           chunk=act_chunk(shortest_episode, fps))
 

@@ -46,7 +46,7 @@ from lerobot.common.train_utils import get_step_checkpoint_dir
 from lerobot_policy_hiveformer.configuration_hiveformer import TEXT_ENCODERS
 
 from demo_factory.convert.converter import read_dataset_provenance
-from demo_factory.convert.usage import act_chunk, act_train_args
+from demo_factory.convert.usage import MULTI_TASK_RECIPE, MULTI_TASK_STEPS, act_chunk, act_train_args, policy_flags
 from demo_factory.instructions import shipped_human_instructions
 from demo_factory.suites import SUITES
 from demo_factory.tasks import get_task
@@ -123,8 +123,10 @@ TOWER_RECIPE = SEEN_RECIPE | {"lr_schedule": "cosine", "optimizer_lr": 2e-3}
 # `make reference-suite` (--suite NAME): one multi-task HiveFormer over a suite's tasks in the paper's Table 1
 # setting, one variation a task (its first train variation) with its synthetic instructions, TOWER_RECIPE's annealed
 # learning rate; validated on 10 scenes a task, evaluated on 20 new ones a task.
-SUITE = {"episodes_per_variation": 50, "steps": 8000, "curve": 4, "eval_episodes": 20, "validation_episodes": 10}
-SUITE_RECIPE = TOWER_RECIPE
+# The recipe and steps are what the converter suggests for a multi-task export: TOWER_RECIPE's settings.
+SUITE = {"episodes_per_variation": 50, "steps": MULTI_TASK_STEPS, "curve": 4, "eval_episodes": 20,
+         "validation_episodes": 10}
+SUITE_RECIPE = MULTI_TASK_RECIPE
 DENSE_FPS = 20  # the dense export's control rate (ACT)
 RESUME_EVERY = 500  # training steps between checkpoints at most: what an interrupted run can lose
 TRAIN_SEED = 1000  # lerobot-train's own default
@@ -198,11 +200,6 @@ def train_stage_command(train: Path, steps: int, fresh: list[str]) -> list[str]:
     if not last.exists():
         shutil.rmtree(train, ignore_errors=True)
     return fresh
-
-
-def policy_flags(settings: dict) -> list[str]:
-    """`lerobot-train` arguments that set these HiveformerConfig fields."""
-    return [f"--policy.{name}={str(value).lower()}" for name, value in settings.items()]
 
 
 def with_arguments(command: list[str], extra: list[str]) -> list[str]:
