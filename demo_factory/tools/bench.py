@@ -249,7 +249,7 @@ def bench_conversion(episodes: int) -> dict:
 def bench_hiveformer() -> dict:
     """The plugin's own measurement script (train step at batch 8, inference per step), on CPU."""
     result = subprocess.run([sys.executable, str(HIVEFORMER_MEASURE), "--batch-size", "8"],
-                            capture_output=True, text=True, env={**os.environ, "HF_HUB_OFFLINE": "1"})
+                            capture_output=True, text=True, env={**training_environment(), "HF_HUB_OFFLINE": "1"})
     if result.returncode != 0:
         return {"error": result.stderr.strip().splitlines()[-1] if result.stderr.strip() else "failed"}
     text = result.stdout
@@ -380,7 +380,8 @@ def bench_hiveformer_training(episodes: int, train_steps: int) -> dict:
     generated at that size.
     """
     from demo_factory.convert.converter import ConvertOptions, convert
-    from demo_factory.tools.reference_run import SEEN_RECIPE, policy_flags, train_command, train_log_timings
+    from demo_factory.tools.reference_run import (SEEN_RECIPE, policy_flags, train_command, train_log_timings,
+                                                  training_environment)
 
     figures = {}
     with tempfile.TemporaryDirectory() as folder:
@@ -398,7 +399,7 @@ def bench_hiveformer_training(episodes: int, train_steps: int) -> dict:
                 reference, steps=min(train_steps, 10), settings=settings)
         output_dir = Path(folder) / "train"
         command = train_command(reference, output_dir, steps=train_steps, log_freq=5) + policy_flags(SEEN_RECIPE)
-        result = subprocess.run(command, capture_output=True, text=True, env={**os.environ, "HF_HUB_OFFLINE": "1"})
+        result = subprocess.run(command, capture_output=True, text=True, env={**training_environment(), "HF_HUB_OFFLINE": "1"})
         if result.returncode != 0:
             figures["lerobot_train"] = {"error": result.stderr.strip().splitlines()[-1] if result.stderr else "failed"}
         else:

@@ -34,6 +34,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import re
 import shutil
 import statistics
@@ -130,6 +131,18 @@ RESUME_EVERY = 500  # training steps between checkpoints at most: what an interr
 TRAIN_SEED = 1000  # lerobot-train's own default
 # `demo-factory eval --seed` of the validation scenes that pick the checkpoint; the final evaluation's is 0.
 VALIDATION_SEED = 1
+
+
+# glibc's malloc told to keep the memory tensors free (no mmap for large blocks, no trimming of the heap) instead of
+# handing it back to the kernel and faulting it in, zero-filled, for the next tensor: a CPU training step takes up to
+# half as long, and the process keeps its peak heap (docs/plugin.md). Set in the training's environment; other C
+# libraries ignore these variables.
+KEEP_FREED_MEMORY = {"MALLOC_MMAP_MAX_": "0", "MALLOC_TRIM_THRESHOLD_": str(2**31 - 1)}
+
+
+def training_environment() -> dict[str, str]:
+    """This process's environment with the malloc settings a CPU training runs with."""
+    return {**os.environ, **KEEP_FREED_MEMORY}
 
 
 def longest_episode(dataset_root: Path) -> int:
@@ -276,11 +289,13 @@ def plot_learning_curve(path: Path, curve: list[dict], title: str) -> None:
     plt.close(figure)
 
 
-def run(command: list[str], log: Path) -> None:
-    """Run one stage's command, its output teed to a log file; stop the run if it fails."""
+def run(command: list[str], log: Path, env: dict[str, str] | None = None) -> None:
+    """Run one stage's command (in `env`, default this process's environment), its output teed to a log file; stop
+    the run if it fails."""
     print("$ " + " ".join(command), flush=True)
     with log.open("a") as out:  # a resumed stage adds to its log, never replaces it
-        process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, bufsize=1)
+        process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, bufsize=1,
+                                   env=env)
         for line in process.stdout:
             out.write(line)
             shown = line.rstrip().split("\r")[-1]  # a progress bar's last state
@@ -290,13 +305,13 @@ def run(command: list[str], log: Path) -> None:
             raise SystemExit(f"reference run: stage failed ({command[0]} exited {process.returncode}); see {log}")
 
 
-def stage(name: str, done: Path, timings: dict, command: list[str], out: Path) -> None:
+def stage(name: str, done: Path, timings: dict, command: list[str], out: Path, env: dict[str, str] | None = None) -> None:
     """Run a stage unless `done` exists (resume); record its wall time."""
     if done.exists():
         print(f"[{name}] already done ({done}), skipped", flush=True)
         return
     began = time.time()
-    run(command, out / f"{name}.log")
+    run(command, out / f"{name}.log", env)
     timings[name] = round(time.time() - began, 1)
     print(f"[{name}] {timings[name]:.0f} s", flush=True)
 
@@ -534,7 +549,8 @@ def main(argv=None) -> int:
     else:
         args.n_history = args.n_history or longest_episode(dataset / "train")
         command = hiveformer_run_command(args, dataset / "train", train)
-    stage("train", checkpoint, timings, train_stage_command(train, args.steps, command + [f"--seed={args.seed}"]), out)
+    stage("train", checkpoint, timings, train_stage_command(train, args.steps, command + [f"--seed={args.seed}"]), out,
+          training_environment())
     if "train" in timings:  # trained (or resumed) now: any earlier evaluation was of other weights
         for folder in (out / "validation", evaluation):
             shutil.rmtree(folder, ignore_errors=True)

@@ -9,6 +9,8 @@ with an instruction drawn among its paraphrases, and a CNN stem that sees RGB an
 import math
 from dataclasses import dataclass, field
 
+import draccus
+from draccus.parsers.decoding import decode_dataclass
 from lerobot.configs.policies import PreTrainedConfig
 from lerobot.configs.types import FeatureType, NormalizationMode, PolicyFeature
 from lerobot.optim.optimizers import AdamWConfig, OptimizerConfig
@@ -28,6 +30,9 @@ ACTION_DIM = 8
 GRIPPER_STATE_DIM = 8
 # The encoder halves the image four times: one token per cell of an (H/16, W/16) grid.
 ENCODER_STRIDE = 16
+# Fields that configurations saved by earlier versions may hold and this one no longer has: dropped when a saved
+# config.json is read (draccus rejects unknown fields), so those checkpoints still load.
+REMOVED_FIELDS = ("retain_freed_memory",)
 TEXT_ENCODERS = ("clip", "clip_tiny_random", "minilm", "minilm_words", "one_hot")
 LR_SCHEDULES = ("constant", "cosine", "constant_then_cosine")
 
@@ -198,9 +203,6 @@ class HiveformerConfig(PreTrainedConfig):
     # Share of the steps over which "constant_then_cosine" anneals the rate, at the end of the run.
     lr_decay_fraction: float = 0.375
 
-    # Make glibc's malloc keep the memory tensors free instead of returning it to the kernel and faulting it
-    # in again (see allocator.py): CPU train steps take about half as long. The process keeps its peak heap.
-    retain_freed_memory: bool = True
     # Training only: each data loader worker keeps the history rows it has decoded, up to this many MiB (0:
     # none), and decodes only the others. A row is read again by every window that holds it (history 10-25
     # keyframes) in every epoch; a keyframe dataset is small (rows are kept in their PNGs' 8 and 16 bits: make
@@ -386,3 +388,10 @@ class HiveformerConfig(PreTrainedConfig):
         if self.lr_schedule != "cosine":
             return None
         return CosineAnnealingWithWarmupSchedulerConfig(num_warmup_steps=self.lr_warmup_steps)
+
+
+@draccus.decode.register(HiveformerConfig)
+def _decode_config(raw_value: dict, path) -> HiveformerConfig:
+    """A saved configuration without the REMOVED_FIELDS, decoded as draccus decodes any dataclass."""
+    kept = {key: value for key, value in raw_value.items() if key not in REMOVED_FIELDS}
+    return decode_dataclass(HiveformerConfig, kept, path)

@@ -20,7 +20,6 @@ from torch import Tensor, nn
 from lerobot.policies.pretrained import PreTrainedPolicy
 from lerobot.utils.constants import ACTION, OBS_STATE
 
-from .allocator import retain_freed_memory
 from .configuration_hiveformer import (
     CALIBRATION_PREFIX,
     DEPTH_PREFIX,
@@ -1046,8 +1045,6 @@ class HiveformerPolicy(PreTrainedPolicy):
     def __init__(self, config: HiveformerConfig, dataset_stats=None, dataset_meta=None, **kwargs):
         super().__init__(config)
         config.validate_features()
-        if config.retain_freed_memory:
-            retain_freed_memory()
         if config.text_encoder == "one_hot" and not config.instruction_vocabulary:
             if dataset_meta is None:
                 raise ValueError(
