@@ -26,7 +26,7 @@ $(STAMP): pyproject.toml $(PLUGIN)/pyproject.toml
 	$(BIN)/python -c 'import sys; sys.exit(sys.version_info[:2] != (3, 12))' 2>/dev/null || \
 	  { rm -rf $(VENV) && $(PYTHON) -m venv $(VENV); }
 	$(BIN)/python -m pip install --quiet --upgrade pip
-	$(BIN)/python -m pip install --quiet -e ".[test,ray]" -e "$(PLUGIN)[minilm]"
+	$(BIN)/python -m pip install --quiet -e ".[test,ray]" -e "$(PLUGIN)[minilm,cpu]"
 	touch $(STAMP)
 
 # The main job on a small default: expert episodes of both splits → MCAP → LeRobot datasets.

@@ -98,8 +98,8 @@ EXTRA_SEED = 5
 UNSEEN = {"episodes_per_variation": 6, "test_episodes_per_variation": 1,
           "text_encoder": "minilm_words", "steps": 8000, "curve": 4, "eval_episodes": 40}
 CURVE_SPLITS = {False: ("train",), True: ("train", "test_unseen_synthetic")}
-# Windows ending at every frame and the 7-channel CNN stem (HiveformerConfig fields).
-RECIPE = {"whole_episodes": False, "stem_point_cloud": True}
+# Windows ending at every frame and the 7-channel CNN stem (HiveformerConfig fields), with the compiled CPU loops.
+RECIPE = {"whole_episodes": False, "stem_point_cloud": True, "cpu_kernels": True}
 # `make reference-unseen`: windows ending at every frame, the authors' 4-channel CNN stem, the plugin's instruction
 # position embeddings, a learning rate of 2e-3 held through the early plateau (position loss ~0.005, the attention
 # between the buttons) and annealed to 0 over the last 3000 steps (constant_then_cosine), and the heatmap
