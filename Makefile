@@ -26,7 +26,7 @@ $(STAMP): pyproject.toml $(PLUGIN)/pyproject.toml
 	$(BIN)/python -c 'import sys; sys.exit(sys.version_info[:2] != (3, 12))' 2>/dev/null || \
 	  { rm -rf $(VENV) && $(PYTHON) -m venv $(VENV); }
 	$(BIN)/python -m pip install --quiet --upgrade pip
-	$(BIN)/python -m pip install --quiet -e ".[test,ray]" -e "$(PLUGIN)[minilm]"
+	$(BIN)/python -m pip install --quiet -e ".[test,ray]" -e "$(PLUGIN)[minilm,cpu]"
 	touch $(STAMP)
 
 # The main job on a small default: expert episodes of both splits → MCAP → LeRobot datasets.
@@ -47,8 +47,12 @@ test: install
 	  echo "chromium/chromium-driver could not be installed: the browser test will be skipped"
 	$(BIN)/python -m pytest
 
+# glibc's malloc keeps the memory tensors free instead of faulting it in again for the next tensor (CPU training steps
+# up to twice as fast; docs/plugin.md): the settings reference_run.py gives lerobot-train (KEEP_FREED_MEMORY).
+KEEP_FREED_MEMORY := MALLOC_MMAP_MAX_=0 MALLOC_TRIM_THRESHOLD_=2147483647
+
 bench: install
-	$(BIN)/python -m demo_factory.tools.bench --out bench/results.json
+	$(KEEP_FREED_MEMORY) $(BIN)/python -m demo_factory.tools.bench --out bench/results.json
 
 # The reference run (not part of `make test`): push_buttons demos (three seen variations, 40 episodes each
 # and 60 more of the one-button one) → dataset → lerobot-train HiveFormer → a checkpoint every 100 steps

@@ -1,10 +1,13 @@
 """HiveFormer policy plugin on a tiny keyframe dataset written in the converter's format."""
 
 import dataclasses
+import json
 import math
+import os
 import platform
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 import torch
@@ -16,29 +19,32 @@ from hiveformer_fixtures import (
     write_tiny_dataset,
 )
 from lerobot.policies.factory import make_policy, make_pre_post_processors
-from lerobot_policy_hiveformer import HiveformerConfig, HiveformerPolicy, modeling_hiveformer
-from lerobot_policy_hiveformer.cpu_kernels import GroupNormLeakyReLU, bilinear_upsample, weighted_points
-from lerobot_policy_hiveformer.modeling_hiveformer import (
+from lerobot_policy_hiveformer import HiveformerConfig, HiveformerPolicy, observations
+from lerobot_policy_hiveformer import attention as attention_module
+from lerobot_policy_hiveformer.attention import (
     BlockCausalLayer,
-    ClipInstructionEncoder,
-    ConvBlock,
-    LEAKY_SLOPE,
     Dropout,
-    KeyframeObservations,
     MultiHeadAttention,
     PackedSteps,
     block_causal_mask,
+)
+from lerobot_policy_hiveformer.modeling_hiveformer import heatmap_cross_entropy, quaternion_loss, supervised_steps
+from lerobot_policy_hiveformer.observations import (
+    KeyframeObservations,
     gripper_pixel,
-    heatmap_cross_entropy,
     keyframe_observations,
     patch_mean_points,
     project_to_pixels,
-    quaternion_loss,
-    conv_block_of_concatenation,
-    supervised_steps,
-    tiny_random_clip_text_model,
-    upsample_twice,
 )
+from lerobot_policy_hiveformer.text_encoders import ClipInstructionEncoder, tiny_random_clip_text_model
+from lerobot_policy_hiveformer.unet import LEAKY_SLOPE, ConvBlock, conv_block_of_concatenation, upsample_twice
+
+# The compiled CPU loops (the `cpu` extra); their tests are skipped without numba.
+try:
+    from lerobot_policy_hiveformer import cpu_kernels
+except ImportError:
+    cpu_kernels = None
+needs_numba = pytest.mark.skipif(cpu_kernels is None, reason="the compiled CPU loops need numba (the `cpu` extra)")
 
 __all__ = ["tiny_dataset_root"]  # the fixture is used by name
 
@@ -140,7 +146,7 @@ def test_attention_padded_to_the_fast_head_dimension_gives_the_same_outputs(monk
     with torch.no_grad():
         assert attention._heads(attention.query(queries)).shape[-1] == 16
         padded = attention(queries, keys, allowed)
-        monkeypatch.setattr(modeling_hiveformer, "FUSED_CPU_MIN_HEAD_DIM", 0)
+        monkeypatch.setattr(attention_module, "FUSED_CPU_MIN_HEAD_DIM", 0)
         assert attention._heads(attention.query(queries)).shape[-1] == 8
         plain = attention(queries, keys, allowed)
     assert torch.allclose(padded, plain, atol=1e-6)
@@ -195,7 +201,7 @@ def test_world_points_are_the_camera_points_rotated_and_translated():
     fx, fy, cx, cy = (intrinsics[:, i, None, None] for i in range(4))
     camera = torch.stack([(u - cx) * depth / fx, (v - cy) * depth / fy, depth], dim=1)  # (2, 3, H, W)
     expected = torch.einsum("bij,bjhw->bihw", rotation, camera) + world_from_camera[:, :3, 3, None, None]
-    assert torch.allclose(modeling_hiveformer.depth_to_world_points(depth, calibration), expected, atol=1e-5)
+    assert torch.allclose(observations.depth_to_world_points(depth, calibration), expected, atol=1e-5)
 
 
 def test_quaternion_loss_is_sign_invariant(tiny_dataset_root):
@@ -326,7 +332,7 @@ def test_instruction_token_order_matters_only_with_position_embeddings(tiny_data
     embeddings are what tell "red, then blue" from "blue, then red"."""
     policy = make_tiny_policy(tiny_dataset_root, instruction_position_embeddings=positions).eval()
     batch = history_batch(tiny_dataset_root, policy.config, [2, 8])
-    obs = modeling_hiveformer.keyframe_observations(batch, policy.config)
+    obs = keyframe_observations(batch, policy.config)
     features, mask = policy._encode_instructions(obs.instructions, torch.device("cpu"))
     tokens = policy.model.encode_steps(obs, obs.step_valid).tokens
     length = int(mask[0].sum())
@@ -594,12 +600,13 @@ def test_rescaled_maps_are_the_cameras_resized_padded_and_cropped(tiny_dataset_r
         assert out.stem[..., -1].sum() > 0  # the gripper is seen
 
 
+@needs_numba
 @pytest.mark.parametrize("shape", [(6, 16, 64, 64), (40, 16, 8, 8), (2, 16, 4, 4), (3, 64, 4, 4), (1, 16, 1, 1)])
 def test_group_norm_leaky_relu_equals_pytorchs(shape):
     """Same values and gradients (input, weight, bias) as F.group_norm then F.leaky_relu, channels-last in and out
     (the compiled kernels) and NCHW (PyTorch's), with and without autograd."""
     torch.manual_seed(0)
-    layer = GroupNormLeakyReLU(num_groups=4, num_channels=shape[1], negative_slope=LEAKY_SLOPE)
+    layer = cpu_kernels.GroupNormLeakyReLU(num_groups=4, num_channels=shape[1], negative_slope=LEAKY_SLOPE)
     with torch.no_grad():
         layer.weight.normal_()
         layer.bias.normal_()
@@ -621,12 +628,13 @@ def test_group_norm_leaky_relu_equals_pytorchs(shape):
     assert (out < 0).any() and (out > 0).any()  # both sides of the activation were exercised
 
 
+@needs_numba
 def test_group_norm_leaky_relu_is_accurate_where_the_mean_dwarfs_the_spread():
     """A map whose mean is 100 times its spread: float32 sums of E[x²] - E[x]² lose the variance there (a training
     run's loss jumped with them); the kernels' float64 sums keep the output within PyTorch's own float32 error."""
     torch.manual_seed(0)
     x = torch.randn(8, 16, 32, 32, dtype=torch.float64) * 0.1 + 10
-    layer = GroupNormLeakyReLU(num_groups=4, num_channels=16, negative_slope=LEAKY_SLOPE)
+    layer = cpu_kernels.GroupNormLeakyReLU(num_groups=4, num_channels=16, negative_slope=LEAKY_SLOPE)
     exact = torch.nn.functional.leaky_relu(torch.nn.functional.group_norm(x, 4, layer.weight.double(),
                                                                           layer.bias.double(), layer.eps), LEAKY_SLOPE)
     with torch.no_grad():
@@ -634,8 +642,9 @@ def test_group_norm_leaky_relu_is_accurate_where_the_mean_dwarfs_the_spread():
     assert float((got.double() - exact).abs().max()) < 1e-4
 
 
+@needs_numba
 @pytest.mark.parametrize("stem_point_cloud", [True, False])
-def test_the_compiled_maps_are_pytorchs_bit_for_bit(tiny_dataset_root, monkeypatch, stem_point_cloud):
+def test_the_compiled_maps_are_pytorchs_bit_for_bit(tiny_dataset_root, stem_point_cloud):
     """`keyframe_maps` (one compiled pass) gives PyTorch's stem input, point cloud, validity and patch points bit for
     bit, augmented or not, for windows whose padding steps get no maps: a training run takes the same path."""
     config, _ = tiny_config(tiny_dataset_root, stem_point_cloud=stem_point_cloud)
@@ -643,11 +652,10 @@ def test_the_compiled_maps_are_pytorchs_bit_for_bit(tiny_dataset_root, monkeypat
     keep = supervised_steps(batch)
     for rescale in (None, (0.75, 1.25), (1.3, 2.0)):
         torch.manual_seed(0)
-        compiled = keyframe_observations(batch, config, keep=keep, rescale=rescale)
-        with monkeypatch.context() as patch:
-            patch.setattr(modeling_hiveformer, "keyframe_maps", lambda *args: None)  # PyTorch's operations
-            torch.manual_seed(0)
-            eager = keyframe_observations(batch, config, keep=keep, rescale=rescale)
+        compiled = keyframe_observations(batch, config, keep=keep, rescale=rescale,
+                                         build_maps=cpu_kernels.keyframe_maps)
+        torch.manual_seed(0)
+        eager = keyframe_observations(batch, config, keep=keep, rescale=rescale)  # PyTorch's operations
         assert not compiled.pixel_steps.all()  # padding steps left out
         assert compiled.stem.shape == (int(compiled.pixel_steps.sum()), 3, 32, 32, 7 if stem_point_cloud else 4)
         assert compiled.patch_xyz.shape == (int(compiled.pixel_steps.sum()), 3, 3, 2, 2)
@@ -658,6 +666,7 @@ def test_the_compiled_maps_are_pytorchs_bit_for_bit(tiny_dataset_root, monkeypat
                                want.view(torch.int32) if want.is_floating_point() else want), (rescale, name)
 
 
+@needs_numba
 @pytest.mark.parametrize("shape", [(40, 16, 16, 16), (3, 16, 4, 4), (2, 32, 3, 7), (1, 16, 1, 1), (2, 5, 3, 7)])
 def test_bilinear_upsample_is_pytorchs_bit_for_bit(shape):
     """The compiled 2x bilinear upsampling of channels-last maps gives F.interpolate's values and gradients bit for
@@ -666,18 +675,19 @@ def test_bilinear_upsample_is_pytorchs_bit_for_bit(shape):
     x = torch.randn(shape).contiguous(memory_format=torch.channels_last).requires_grad_()
     reference = x.detach().clone().contiguous(memory_format=torch.channels_last).requires_grad_()
     size = (2 * shape[2], 2 * shape[3])
-    got = bilinear_upsample(x, size)
+    got = cpu_kernels.bilinear_upsample(x, size)
     expected = torch.nn.functional.interpolate(reference, size=size, mode="bilinear", align_corners=False)
     assert torch.equal(got, expected) and got.is_contiguous(memory_format=torch.channels_last)
     for grad in (torch.randn_like(expected), torch.randn(expected.shape)):  # channels-last, then NCHW
         (g,) = torch.autograd.grad(got, x, grad, retain_graph=True)
         (want,) = torch.autograd.grad(expected, reference, grad, retain_graph=True)
         assert torch.equal(g, want)
-    odd = bilinear_upsample(x, (shape[2] + 1, shape[3]))  # not doubled: PyTorch's
+    odd = cpu_kernels.bilinear_upsample(x, (shape[2] + 1, shape[3]))  # not doubled: PyTorch's
     assert torch.equal(odd, torch.nn.functional.interpolate(reference, size=(shape[2] + 1, shape[3]), mode="bilinear",
                                                             align_corners=False))
 
 
+@needs_numba
 @pytest.mark.parametrize("shape", [(6, 3, 3, 64 * 64), (2, 1, 3, 5), (1, 3, 3, 1)])
 def test_weighted_points_gradient_is_the_batched_products(shape):
     """The compiled gradient of the attended point's weights is the batched product's within float32 rounding: bit
@@ -687,7 +697,7 @@ def test_weighted_points_gradient_is_the_batched_products(shape):
     points = torch.randn(shape) * 0.5
     weights = torch.rand(*shape[:-2], shape[-1], 1).softmax(-2).requires_grad_()
     reference = weights.detach().clone().requires_grad_()
-    got, expected = weighted_points(points, weights), points @ reference
+    got, expected = cpu_kernels.weighted_points(points, weights), points @ reference
     assert torch.equal(got, expected)
     grad = torch.randn_like(got)
     got.backward(grad)
@@ -789,7 +799,7 @@ def test_loading_minilm_prints_nothing_alarming_and_a_real_mismatch_is_raised(tm
 
     from safetensors.torch import load_file, save_file
 
-    from lerobot_policy_hiveformer.modeling_hiveformer import _load_text_model, minilm_model_dir
+    from lerobot_policy_hiveformer.text_encoders import _load_text_model, minilm_model_dir
 
     model = _load_text_model(minilm_model_dir())  # its checkpoint holds position ids that BERT now builds itself
     assert model.config.hidden_size == 384
@@ -820,13 +830,8 @@ def test_minilm_words_gives_a_word_the_same_features_wherever_it_stands(tiny_dat
 
 def test_measure_compute_times_each_part_of_every_rollout_step(tiny_dataset_root):
     """The benchmark's split of a rollout step (measure_compute.py) times each part once per step."""
-    import importlib.util
-    from pathlib import Path
+    from lerobot_policy_hiveformer import measure_compute as measure
 
-    script = Path(__file__).parents[1] / "policies" / "lerobot_policy_hiveformer" / "measure_compute.py"
-    spec = importlib.util.spec_from_file_location("measure_compute", script)
-    measure = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(measure)
     policy = make_tiny_policy(tiny_dataset_root)
     config, _ = tiny_config(tiny_dataset_root)
     batch = history_batch(tiny_dataset_root, config, [0, 1, 2])
@@ -854,8 +859,7 @@ def test_measure_compute_times_each_part_of_every_rollout_step(tiny_dataset_root
 
 
 FAULTS_OF_REPEATED_BIG_TENSORS = """
-import resource, sys, torch
-from lerobot_policy_hiveformer.allocator import retain_freed_memory
+import resource, torch
 
 def faults() -> int:
     before = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
@@ -863,30 +867,92 @@ def faults() -> int:
         torch.ones(64 * 2**20 // 4)  # 64 MiB, freed at once
     return resource.getrusage(resource.RUSAGE_SELF).ru_minflt - before
 
-faults()
-default = faults()
-applied = retain_freed_memory()
-faults()  # the heap grows to hold the five tensors over the first rounds after the switch (one or two, by
-faults()  # what the imports left in it), then serves every round from memory it keeps
-print(default, applied, faults())
+for _ in range(3):  # the heap grows to hold the five tensors over the first rounds (one or two, by what the imports
+    faults()        # left in it), then serves every round from memory it keeps, if malloc keeps it
+print(faults())
 """
 
 
 @pytest.mark.skipif(not (sys.platform == "linux" and platform.libc_ver()[0] == "glibc"), reason="glibc only")
-def test_retained_memory_is_not_faulted_in_again():
-    """Glibc's default maps every big tensor afresh (16,384 page faults per 64 MiB); after
-    `retain_freed_memory` a freed tensor's memory serves the next one. Run in its own process, since
-    the setting lasts for the process."""
-    result = subprocess.run([sys.executable, "-c", FAULTS_OF_REPEATED_BIG_TENSORS], capture_output=True, text=True,
-                            check=True)
-    default, applied, retained = result.stdout.split()
-    assert applied == "True"
-    assert int(default) >= 5 * 16_000 and int(retained) < 1_000
+def test_the_launchers_malloc_settings_keep_freed_memory():
+    """Glibc's default maps every big tensor afresh (16,384 page faults per 64 MiB); in the environment the reference
+    runs give lerobot-train (and `make bench`, the same values), a freed tensor's memory serves the next one."""
+    from demo_factory.tools.reference_run import KEEP_FREED_MEMORY
+
+    def faults(env: dict) -> int:
+        result = subprocess.run([sys.executable, "-c", FAULTS_OF_REPEATED_BIG_TENSORS], capture_output=True, text=True,
+                                check=True, env=env)
+        return int(result.stdout)
+
+    clean = {k: v for k, v in os.environ.items() if not k.startswith("MALLOC_")}
+    assert faults(clean) >= 5 * 16_000 and faults({**clean, **KEEP_FREED_MEMORY}) < 1_000
+    makefile = (Path(__file__).parents[1] / "Makefile").read_text()
+    assert f"KEEP_FREED_MEMORY := {' '.join(f'{k}={v}' for k, v in KEEP_FREED_MEMORY.items())}\n" in makefile
 
 
-@pytest.mark.parametrize("retain", [True, False])
-def test_the_policy_retains_freed_memory_unless_told_not_to(tiny_dataset_root, monkeypatch, retain):
-    calls = []
-    monkeypatch.setattr(modeling_hiveformer, "retain_freed_memory", lambda: calls.append(True))
-    make_tiny_policy(tiny_dataset_root, retain_freed_memory=retain)
-    assert calls == ([True] if retain else [])
+def test_a_saved_configuration_with_a_removed_field_names_it(tiny_dataset_root, tmp_path):
+    """A config.json saved with `retain_freed_memory` (a field since removed) stops with an error naming it; deleted
+    from the file, the checkpoint loads (the README says so)."""
+    from lerobot.configs.policies import PreTrainedConfig
+
+    config, _ = tiny_config(tiny_dataset_root, hidden_dim=48)
+    config._save_pretrained(tmp_path)
+    saved = json.loads((tmp_path / "config.json").read_text())
+    (tmp_path / "config.json").write_text(json.dumps({**saved, "retain_freed_memory": True}))
+    with pytest.raises(Exception, match="retain_freed_memory"):
+        PreTrainedConfig.from_pretrained(tmp_path)
+    (tmp_path / "config.json").write_text(json.dumps(saved))
+    loaded = PreTrainedConfig.from_pretrained(tmp_path)
+    assert isinstance(loaded, HiveformerConfig) and loaded.hidden_dim == 48
+
+
+NOTHING_OUTSIDE_THE_POLICY = """
+import os, sys
+sys.path.insert(0, sys.argv[1])
+import torch, transformers.models.clip, open_clip.tokenizer  # the plugin's dependencies, which set what they set
+import lerobot.datasets.lerobot_dataset, lerobot.policies.pretrained, lerobot.processor
+from hiveformer_fixtures import history_batch, tiny_config
+threads, environment = torch.get_num_threads(), dict(os.environ)
+from lerobot_policy_hiveformer import HiveformerPolicy
+config, meta = tiny_config(sys.argv[2])
+policy = HiveformerPolicy(config, dataset_meta=meta)
+loss, _ = policy.forward(history_batch(sys.argv[2], config, [2, 8]))
+loss.backward()
+assert "numba" not in sys.modules, "numba imported"
+assert torch.get_num_threads() == threads and dict(os.environ) == environment
+""" + FAULTS_OF_REPEATED_BIG_TENSORS
+
+
+@pytest.mark.skipif(not (sys.platform == "linux" and platform.libc_ver()[0] == "glibc"), reason="glibc only")
+def test_importing_and_training_the_policy_changes_nothing_in_the_process(tiny_dataset_root):
+    """Importing the plugin, building a policy and taking a training step (PyTorch's operations, the default) import no
+    numba and leave torch's threads, the environment and glibc's malloc (every big tensor still faulted in afresh)
+    as they were. In its own process, since those settings are the process's."""
+    clean = {k: v for k, v in os.environ.items() if not k.startswith("MALLOC_")}
+    result = subprocess.run([sys.executable, "-c", NOTHING_OUTSIDE_THE_POLICY, str(Path(__file__).parent),
+                             str(tiny_dataset_root)], capture_output=True, text=True, env=clean)
+    assert result.returncode == 0, result.stderr[-2000:]
+    assert int(result.stdout.split()[-1]) >= 5 * 16_000
+
+
+@needs_numba
+def test_the_cpu_kernels_switch_gives_pytorchs_losses_and_gradients(tiny_dataset_root):
+    """`cpu_kernels=true` builds the compiled layers and trains on the same values as PyTorch's operations (GroupNorm's
+    within float32 rounding), from the same initial parameters."""
+    settings = {"augmentation_min_scale": 1.0, "augmentation_max_scale": 1.0, "attention_dropout": 0.0}
+    plain = make_tiny_policy(tiny_dataset_root, **settings)
+    compiled = make_tiny_policy(tiny_dataset_root, **settings, cpu_kernels=True)
+    compiled.load_state_dict(plain.state_dict())
+    assert any(isinstance(m, cpu_kernels.GroupNormLeakyReLU) for m in compiled.modules())
+    assert not any(isinstance(m, cpu_kernels.GroupNormLeakyReLU) for m in plain.modules())
+    batch = history_batch(tiny_dataset_root, plain.config, [2, 8, 13])
+    losses = []
+    for policy in (plain, compiled):
+        policy.train()
+        loss, _ = policy.forward(batch)
+        loss.backward()
+        losses.append(loss.detach())
+    torch.testing.assert_close(losses[0], losses[1], rtol=1e-5, atol=1e-6)
+    for (name, p), q in zip(plain.named_parameters(), compiled.parameters(), strict=True):
+        if p.grad is not None:
+            torch.testing.assert_close(p.grad, q.grad, rtol=1e-3, atol=1e-5, msg=name)

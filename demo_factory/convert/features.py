@@ -25,6 +25,7 @@ Robot and labels:
 from __future__ import annotations
 
 import numpy as np
+from lerobot_policy_hiveformer.dataset_format import CALIBRATION_DIM
 
 from demo_factory.record.episode import CameraObservation, Episode, Frame, RobotState
 
@@ -35,7 +36,8 @@ ACTION_NAMES = [*POSE_NAMES, "open"]
 CALIBRATION_NAMES = ["fx", "fy", "cx", "cy", *(f"T_world_cam_{r}{c}" for r in range(4) for c in range(4))]
 STATE_SIZE = len(STATE_NAMES)  # 15: gripper pose, open, 7 joints
 ACTION_SIZE = len(ACTION_NAMES)  # 8: the next keyframe's pose and open (a dense joints action has 8 too)
-CALIBRATION_SIZE = len(CALIBRATION_NAMES)  # 20 per camera: intrinsics, then the 4x4 camera-to-world matrix
+CALIBRATION_SIZE = CALIBRATION_DIM  # 20 per camera: intrinsics, then the 4x4 camera-to-world matrix (the policy's)
+assert len(CALIBRATION_NAMES) == CALIBRATION_SIZE
 DEPTH_INFO = {"is_depth_map": True, "depth_unit": "mm"}  # LeRobot 0.6's native depth flag and unit
 CALIBRATION_LAYOUT = {
     "intrinsics": "fx, fy, cx, cy in pixels (pixel centres at integer coordinates)",
@@ -100,7 +102,8 @@ def depth_mm(depth_m: np.ndarray) -> np.ndarray:
 
 def pack_depth(depth_m: np.ndarray) -> np.ndarray:
     """(H, W) metres → (H, W, 3) uint8 millimetres, R = mm // 256, G = mm % 256, B = 0: how a gym
-    environment, whose images must be uint8, hands depth to ``lerobot-eval`` (the policy unpacks it)."""
+    environment, whose images must be uint8, hands depth to ``lerobot-eval`` (its processor step unpacks it:
+    ``evaluate.gym_layout``)."""
     mm = depth_mm(depth_m)[..., 0]
     packed = np.zeros((*mm.shape, 3), np.uint8)
     packed[..., 0] = mm >> 8

@@ -27,6 +27,7 @@ from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 
+from lerobot_policy_hiveformer.dataset_format import PARAPHRASES_FILE, RELABELS_FILE
 from tqdm import tqdm
 
 from demo_factory.convert.features import dataset_features, dataset_frame, episode_items
@@ -40,8 +41,6 @@ from demo_factory.tasks.variations import Variation
 # 2 = LeRobot 0.4's packed depth, provenance in meta/info.json; 1 = variation ids before the paper's.
 DATASET_FORMAT_VERSION = 3
 PROVENANCE_FILE = "meta/demo_factory.json"
-PARAPHRASES_FILE = "meta/task_paraphrases.json"  # read by lerobot_policy_hiveformer (its dataset_reading)
-RELABELS_FILE = "meta/instruction_relabels.json"  # likewise
 # A split is cut into batches of at least this many episodes: each batch costs a process, a dataset and
 # its share of the merge (~1-2 s), which below ~16 episodes a split (2 batches) costs more than it saves.
 SMALLEST_BATCH = 8

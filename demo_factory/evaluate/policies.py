@@ -109,6 +109,8 @@ class LeRobotPolicy:
         from lerobot.policies.factory import get_policy_class, make_pre_post_processors
         from lerobot.utils.import_utils import register_third_party_plugins
 
+        import demo_factory.evaluate.gym_layout  # noqa: F401  (registers the step older checkpoints' pre-processors name)
+
         register_third_party_plugins()  # finds lerobot_policy_* plugins such as HiveFormer
         self.torch = torch
         path = str(path)

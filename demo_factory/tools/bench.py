@@ -27,10 +27,9 @@ from demo_factory.generate import EpisodeRequest, episode_seed, job_requests, ru
 from demo_factory.record import library_versions
 from demo_factory.suites import SUITES
 from demo_factory.tasks import MULTI_VARIATION_TASKS, TASKS, get_task
-from demo_factory.tools.reference_run import REFERENCE_IMAGE_SIZE
+from demo_factory.tools.reference_run import REFERENCE_IMAGE_SIZE, training_environment
 
 REPO = Path(__file__).resolve().parents[2]
-HIVEFORMER_MEASURE = REPO / "policies" / "lerobot_policy_hiveformer" / "measure_compute.py"
 
 
 def _timing(outcomes) -> dict:
@@ -248,8 +247,9 @@ def bench_conversion(episodes: int) -> dict:
 
 def bench_hiveformer() -> dict:
     """The plugin's own measurement script (train step at batch 8, inference per step), on CPU."""
-    result = subprocess.run([sys.executable, str(HIVEFORMER_MEASURE), "--batch-size", "8"],
-                            capture_output=True, text=True, env={**os.environ, "HF_HUB_OFFLINE": "1"})
+    result = subprocess.run([sys.executable, "-m", "lerobot_policy_hiveformer.measure_compute", "--batch-size", "8",
+                             "--cpu-kernels"],
+                            capture_output=True, text=True, env={**training_environment(), "HF_HUB_OFFLINE": "1"})
     if result.returncode != 0:
         return {"error": result.stderr.strip().splitlines()[-1] if result.stderr.strip() else "failed"}
     text = result.stdout
@@ -286,16 +286,6 @@ def _history_items_per_second(root: Path, n_history: int, items: int) -> dict:
     return {"history_steps": n_history, "keys_with_history": len(keys), "frames_in_dataset": len(plugin),
             "stock_items_per_second": rates["stock"], "plugin_items_per_second": rates["plugin"],
             "speedup": rates["plugin"] / rates["stock"]}
-
-
-def _measure_compute():
-    """The plugin's measurement script as a module (it is a script beside the package, not part of it)."""
-    import importlib.util
-
-    spec = importlib.util.spec_from_file_location("measure_compute", HIVEFORMER_MEASURE)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
 
 
 def train_step_against_kernel_floor(root: Path, steps: int, repeats: int = 10, settings: dict | None = None,
@@ -347,7 +337,8 @@ def train_step_against_kernel_floor(root: Path, steps: int, repeats: int = 10, s
         return time.perf_counter() - began
 
     step(batches[0])  # the first step also encodes the instructions and warms the allocator
-    measure = _measure_compute()
+    from lerobot_policy_hiveformer import measure_compute as measure
+
     durations, floors, ratios = [], [], []
     for batch in batches:
         calls = measure.record_kernel_calls(lambda batch=batch: policy.forward(batch))
@@ -393,12 +384,12 @@ def bench_hiveformer_training(episodes: int, train_steps: int) -> dict:
         figures["history_reading_128px"] = _history_items_per_second(Path(folder) / "converted128" / "train", 6, 120)
         reference = Path(folder) / f"converted{REFERENCE_IMAGE_SIZE}" / "train"
         # make reference's recipe (windows, 7-channel stem), then the plugin's defaults (the authors' whole episodes)
-        for name, settings in (("", SEEN_RECIPE), ("_whole_episodes", None)):
+        for name, settings in (("", SEEN_RECIPE), ("_whole_episodes", {"cpu_kernels": True})):
             figures[f"train_step_against_kernel_floor{name}"] = train_step_against_kernel_floor(
                 reference, steps=min(train_steps, 10), settings=settings)
         output_dir = Path(folder) / "train"
         command = train_command(reference, output_dir, steps=train_steps, log_freq=5) + policy_flags(SEEN_RECIPE)
-        result = subprocess.run(command, capture_output=True, text=True, env={**os.environ, "HF_HUB_OFFLINE": "1"})
+        result = subprocess.run(command, capture_output=True, text=True, env={**training_environment(), "HF_HUB_OFFLINE": "1"})
         if result.returncode != 0:
             figures["lerobot_train"] = {"error": result.stderr.strip().splitlines()[-1] if result.stderr else "failed"}
         else:

@@ -34,6 +34,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import re
 import shutil
 import statistics
@@ -97,8 +98,8 @@ EXTRA_SEED = 5
 UNSEEN = {"episodes_per_variation": 6, "test_episodes_per_variation": 1,
           "text_encoder": "minilm_words", "steps": 8000, "curve": 4, "eval_episodes": 40}
 CURVE_SPLITS = {False: ("train",), True: ("train", "test_unseen_synthetic")}
-# Windows ending at every frame and the 7-channel CNN stem (HiveformerConfig fields).
-RECIPE = {"whole_episodes": False, "stem_point_cloud": True}
+# Windows ending at every frame and the 7-channel CNN stem (HiveformerConfig fields), with the compiled CPU loops.
+RECIPE = {"whole_episodes": False, "stem_point_cloud": True, "cpu_kernels": True}
 # `make reference-unseen`: windows ending at every frame, the authors' 4-channel CNN stem, the plugin's instruction
 # position embeddings, a learning rate of 2e-3 held through the early plateau (position loss ~0.005, the attention
 # between the buttons) and annealed to 0 over the last 3000 steps (constant_then_cosine), and the heatmap
@@ -132,6 +133,18 @@ RESUME_EVERY = 500  # training steps between checkpoints at most: what an interr
 TRAIN_SEED = 1000  # lerobot-train's own default
 # `demo-factory eval --seed` of the validation scenes that pick the checkpoint; the final evaluation's is 0.
 VALIDATION_SEED = 1
+
+
+# glibc's malloc told to keep the memory tensors free (no mmap for large blocks, no trimming of the heap) instead of
+# handing it back to the kernel and faulting it in, zero-filled, for the next tensor: a CPU training step takes up to
+# half as long, and the process keeps its peak heap (docs/plugin.md). Set in the training's environment; other C
+# libraries ignore these variables.
+KEEP_FREED_MEMORY = {"MALLOC_MMAP_MAX_": "0", "MALLOC_TRIM_THRESHOLD_": str(2**31 - 1)}
+
+
+def training_environment() -> dict[str, str]:
+    """This process's environment with the malloc settings a CPU training runs with."""
+    return {**os.environ, **KEEP_FREED_MEMORY}
 
 
 def longest_episode(dataset_root: Path) -> int:
@@ -273,11 +286,13 @@ def plot_learning_curve(path: Path, curve: list[dict], title: str) -> None:
     plt.close(figure)
 
 
-def run(command: list[str], log: Path) -> None:
-    """Run one stage's command, its output teed to a log file; stop the run if it fails."""
+def run(command: list[str], log: Path, env: dict[str, str] | None = None) -> None:
+    """Run one stage's command (in `env`, default this process's environment), its output teed to a log file; stop
+    the run if it fails."""
     print("$ " + " ".join(command), flush=True)
     with log.open("a") as out:  # a resumed stage adds to its log, never replaces it
-        process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, bufsize=1)
+        process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, bufsize=1,
+                                   env=env)
         for line in process.stdout:
             out.write(line)
             shown = line.rstrip().split("\r")[-1]  # a progress bar's last state
@@ -287,13 +302,13 @@ def run(command: list[str], log: Path) -> None:
             raise SystemExit(f"reference run: stage failed ({command[0]} exited {process.returncode}); see {log}")
 
 
-def stage(name: str, done: Path, timings: dict, command: list[str], out: Path) -> None:
+def stage(name: str, done: Path, timings: dict, command: list[str], out: Path, env: dict[str, str] | None = None) -> None:
     """Run a stage unless `done` exists (resume); record its wall time."""
     if done.exists():
         print(f"[{name}] already done ({done}), skipped", flush=True)
         return
     began = time.time()
-    run(command, out / f"{name}.log")
+    run(command, out / f"{name}.log", env)
     timings[name] = round(time.time() - began, 1)
     print(f"[{name}] {timings[name]:.0f} s", flush=True)
 
@@ -531,7 +546,8 @@ def main(argv=None) -> int:
     else:
         args.n_history = args.n_history or longest_episode(dataset / "train")
         command = hiveformer_run_command(args, dataset / "train", train)
-    stage("train", checkpoint, timings, train_stage_command(train, args.steps, command + [f"--seed={args.seed}"]), out)
+    stage("train", checkpoint, timings, train_stage_command(train, args.steps, command + [f"--seed={args.seed}"]), out,
+          training_environment())
     if "train" in timings:  # trained (or resumed) now: any earlier evaluation was of other weights
         for folder in (out / "validation", evaluation):
             shutil.rmtree(folder, ignore_errors=True)

@@ -11,8 +11,9 @@ Importing this package (``--env.discover_packages_path`` needs a package) regist
 env type. Observations reach the policy the way ``lerobot-eval`` passes any gym observation:
 ``pixels`` → ``observation.images.<cam>`` (RGB) and ``observation.images.<cam>_depth`` (packed
 depth), ``agent_pos`` → ``observation.state``, ``environment_state`` → the cameras' calibration
-vectors concatenated in camera order. The HiveFormer plugin maps that layout back to the
-dataset's (``observation.depth.<cam>``, ``observation.calibration.<cam>``).
+vectors concatenated in camera order. The env's pre-processor (``get_env_processors``:
+``gym_layout.GymObservationLayoutStep``) maps that layout back to the dataset's (``observation.depth.<cam>``,
+``observation.calibration.<cam>``) before the policy's pre-processor sees it.
 """
 
 from __future__ import annotations
@@ -23,8 +24,10 @@ from pathlib import Path
 import gymnasium as gym
 from lerobot.configs.types import FeatureType, PolicyFeature
 from lerobot.envs.configs import EnvConfig
+from lerobot.processor import PolicyProcessorPipeline
 
 from demo_factory.evaluate.env import DEFAULT_CONTROL_FPS, DEFAULT_DENSE_SECONDS, DEFAULT_STEP_SLACK, EVAL_ACTION_SPACES, control_period
+from demo_factory.evaluate.gym_layout import GymObservationLayoutStep
 from demo_factory.sim import CAMERA_NAMES
 from demo_factory.tasks import TASKS
 
@@ -50,7 +53,7 @@ def _features_map() -> dict[str, str]:
     mapping = {"action": "action", "agent_pos": "observation.state", "environment_state": "observation.environment_state"}
     for camera in CAMERA_NAMES:
         mapping[f"pixels/{camera}"] = f"observation.images.{camera}"
-        # lerobot-eval delivers it as observation.images.<cam>_depth; the policy's processor maps it here.
+        # lerobot-eval delivers it as observation.images.<cam>_depth; the env's processor maps it here.
         mapping[f"pixels/{camera}_depth"] = f"observation.depth.{camera}"
     return mapping
 
@@ -107,3 +110,9 @@ class DemoFactoryEnv(EnvConfig):
                 "step_slack": self.step_slack, "base_seed": self.base_seed, "action_space": self.action_space,
                 "fps": self.fps, "max_seconds": self.max_seconds,
                 **({"episodes": self._dataset_episodes} if self.dataset else {})}
+
+    def get_env_processors(self):
+        """(pre-processor, post-processor) of this env's observations and actions: the gym layout decoded back to
+        the dataset's features; actions unchanged."""
+        return (PolicyProcessorPipeline(steps=[GymObservationLayoutStep(cameras=list(CAMERA_NAMES))]),
+                PolicyProcessorPipeline(steps=[]))

