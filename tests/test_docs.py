@@ -28,7 +28,8 @@ def tree_files(suffixes: set[str]) -> list[Path]:
     """The project's own text files: everything but environments, generated data and caches."""
     found = []
     for folder, subfolders, files in os.walk(ROOT):
-        subfolders[:] = [name for name in subfolders if name not in SKIPPED and not name.endswith(".egg-info")]
+        subfolders[:] = [name for name in subfolders if name not in SKIPPED and not name.endswith(".egg-info")
+                         and not (name.startswith(".") and name not in (".ci", ".github"))]  # a user's own dot folders
         found += [Path(folder) / name for name in files if Path(name).suffix in suffixes or name in ("Makefile", "run")]
     return found
 

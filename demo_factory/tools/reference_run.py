@@ -124,10 +124,11 @@ TOWER_RECIPE = SEEN_RECIPE | {"lr_schedule": "cosine", "optimizer_lr": 2e-3}
 # `make reference-suite` (--suite NAME): one multi-task HiveFormer over a suite's tasks in the paper's Table 1
 # setting, one variation a task (its first train variation) with its synthetic instructions, TOWER_RECIPE's annealed
 # learning rate; validated on 10 scenes a task, evaluated on 20 new ones a task.
-# The recipe and steps are what the converter suggests for a multi-task export: TOWER_RECIPE's settings.
+# The recipe and steps are what the converter suggests for a multi-task export (TOWER_RECIPE's settings), with the
+# compiled CPU loops on, as in every reference run.
 SUITE = {"episodes_per_variation": 50, "steps": MULTI_TASK_STEPS, "curve": 4, "eval_episodes": 20,
          "validation_episodes": 10}
-SUITE_RECIPE = MULTI_TASK_RECIPE
+SUITE_RECIPE = MULTI_TASK_RECIPE | {"cpu_kernels": True}
 DENSE_FPS = 20  # the dense export's control rate (ACT)
 RESUME_EVERY = 500  # training steps between checkpoints at most: what an interrupted run can lose
 TRAIN_SEED = 1000  # lerobot-train's own default

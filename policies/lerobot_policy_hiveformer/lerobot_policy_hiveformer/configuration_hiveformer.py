@@ -174,6 +174,9 @@ class HiveformerConfig(PreTrainedConfig):
     # with the `cpu` extra (pip install 'lerobot_policy_hiveformer[cpu]'). PyTorch's values, GroupNorm's within
     # 1e-5; tensors on other devices take PyTorch's operations. False: PyTorch's operations, numba never imported.
     cpu_kernels: bool = False
+    # Ignored; kept so that checkpoints saved while the policy set glibc's malloc options still load. Those options
+    # are now the launcher's environment (MALLOC_MMAP_MAX_, MALLOC_TRIM_THRESHOLD_: the README).
+    retain_freed_memory: bool | None = None
 
     # Every input is consumed in physical units (see the class docstring); only IDENTITY is accepted.
     normalization_mapping: dict[str, NormalizationMode] = field(
