@@ -92,12 +92,10 @@ def policy_flags(settings: dict) -> list[str]:
 
 
 def hiveformer_train_args(repo_id: str, root: Path, output_dir: Path, steps: int = 2000, batch_size: int = 16,
-                          log_freq: int = 100, text_encoder: str = "one_hot", multi_task: bool = False) -> list[str]:
+                          log_freq: int = 100, text_encoder: str = "one_hot", recipe: dict | None = None) -> list[str]:
     """``lerobot-train`` arguments for HiveFormer on a keyframe split: CPU, offline (one-hot codes and MiniLM
-    need no download; ``--policy.text_encoder=clip`` is the paper's, from the Hub), no push, no wandb. A
-    multi-task split gets the suite recipe and its steps."""
-    if multi_task:
-        steps = MULTI_TASK_STEPS
+    need no download; ``--policy.text_encoder=clip`` is the paper's, from the Hub), no push, no wandb; ``recipe``:
+    HiveformerConfig fields to set."""
     return [
         "lerobot-train",
         "--policy.type=hiveformer",
@@ -113,7 +111,7 @@ def hiveformer_train_args(repo_id: str, root: Path, output_dir: Path, steps: int
         f"--batch_size={batch_size}",
         "--num_workers=1",
         f"--log_freq={log_freq}",
-        *(policy_flags(MULTI_TASK_RECIPE) if multi_task else []),
+        *policy_flags(recipe or {}),
     ]
 
 
@@ -124,8 +122,12 @@ def train_args(granularity: str, repo_id: str, root: Path, cameras: list[str], i
     features where the export has unseen splits, the suite recipe where it holds several tasks), ACT (with a chunk
     the shortest episode holds) on dense frames."""
     if granularity == "keyframe":
-        return hiveformer_train_args(repo_id, root, output_dir or Path("outputs/train/hiveformer"),
-                                     text_encoder=hiveformer_text_encoder(unseen_splits), multi_task=multi_task)
+        output_dir = output_dir or Path("outputs/train/hiveformer")
+        text_encoder = hiveformer_text_encoder(unseen_splits)
+        if multi_task:
+            return hiveformer_train_args(repo_id, root, output_dir, steps=MULTI_TASK_STEPS, text_encoder=text_encoder,
+                                         recipe=MULTI_TASK_RECIPE)
+        return hiveformer_train_args(repo_id, root, output_dir, text_encoder=text_encoder)
     return act_train_args(repo_id, root, cameras, image_size, output_dir or Path("outputs/train/act"),
                           chunk=act_chunk(shortest_episode, fps))
 

@@ -389,7 +389,8 @@ def bench_hiveformer_training(episodes: int, train_steps: int) -> dict:
                 reference, steps=min(train_steps, 10), settings=settings)
         output_dir = Path(folder) / "train"
         command = train_command(reference, output_dir, steps=train_steps, log_freq=5) + policy_flags(SEEN_RECIPE)
-        result = subprocess.run(command, capture_output=True, text=True, env={**training_environment(), "HF_HUB_OFFLINE": "1"})
+        result = subprocess.run(command, capture_output=True, text=True,
+                                env={**training_environment(), "HF_HUB_OFFLINE": "1"})
         if result.returncode != 0:
             figures["lerobot_train"] = {"error": result.stderr.strip().splitlines()[-1] if result.stderr else "failed"}
         else:
