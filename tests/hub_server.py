@@ -699,10 +699,10 @@ def keep_on_loopback(endpoint: str) -> None:
     import socket
 
     import httpx
-    from huggingface_hub import set_client_factory
-    from huggingface_hub.utils._http import hf_request_event_hook
+    from huggingface_hub import get_session, set_client_factory
 
     target = httpx.URL(endpoint)
+    hooks = get_session().event_hooks  # the default client's (offline check, request ids), kept on ours
 
     class Route(httpx.HTTPTransport):
         def handle_request(self, request: httpx.Request) -> httpx.Response:
@@ -711,8 +711,7 @@ def keep_on_loopback(endpoint: str) -> None:
             return super().handle_request(request)
 
     def client() -> httpx.Client:  # huggingface_hub's default client, with the transport above
-        return httpx.Client(transport=Route(), event_hooks={"request": [hf_request_event_hook]},
-                            follow_redirects=True, timeout=None)
+        return httpx.Client(transport=Route(), event_hooks=hooks, follow_redirects=True, timeout=None)
 
     set_client_factory(client)
 

@@ -1,9 +1,5 @@
 """End to end: `demo-factory generate` real episodes of both tasks, then `demo-factory convert` them."""
 
-import os
-
-os.environ.setdefault("HF_HUB_OFFLINE", "1")
-
 import pytest
 
 from demo_factory.convert.converter import read_dataset_provenance

@@ -1,16 +1,11 @@
 """Batches of a split written by several processes and merged make the dataset one writer makes."""
 
-import os
-
-os.environ.setdefault("HF_HUB_OFFLINE", "1")
-
 import json
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
 import pytest
-from test_convert import write_recording
 
 from demo_factory.convert.converter import ConvertOptions, convert
 from demo_factory.convert.writer import episode_batches
@@ -46,7 +41,7 @@ def small_batches(monkeypatch):
 
 
 @pytest.fixture(scope="module")
-def recordings(tmp_path_factory):
+def recordings(tmp_path_factory, write_recording):
     folder = tmp_path_factory.mktemp("raw")
     for i, variation in enumerate(get_task("push_buttons").split_variations("train")[:8]):
         write_recording(folder, "push_buttons", "train", variation, 300 + i, keyframes=3 + i % 3)

@@ -1,72 +1,27 @@
 """Dense exports (fixed control rate, joints or ee actions) and closed-loop evaluation of dense policies."""
 
-import os
-
-os.environ.setdefault("HF_HUB_OFFLINE", "1")  # every load below must work without the Hub
-
 import json
+import os
 import subprocess
 import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
-from scipy.spatial.transform import Rotation
 
 from demo_factory.convert.converter import read_dataset_provenance
 from demo_factory.cli import main
 from demo_factory.convert.features import canonical_quaternion
 from demo_factory.convert.usage import act_chunk, act_train_args
-from demo_factory.record import (
-    FORMAT_VERSION,
-    CameraObservation,
-    EpisodeInfo,
-    EpisodeWriter,
-    Frame,
-    Keyframe,
-    RobotState,
-    read_episode,
-)
+from demo_factory.record import read_episode
 from demo_factory.tasks import get_task
 
 CAMERAS = ["left_shoulder", "right_shoulder", "wrist"]
-SIZE = (16, 16)
-RECORDED_FPS = 4
-
-
-def _camera(rng) -> CameraObservation:
-    extrinsics = np.eye(4)
-    extrinsics[:3, 3] = rng.uniform(-1, 1, 3)
-    return CameraObservation(
-        rgb=rng.integers(0, 256, (*SIZE, 3), dtype=np.uint8), depth=np.full(SIZE, 0.5, np.float32),
-        segmentation=np.zeros(SIZE, np.int32), intrinsics=np.array([15.0, 15.0, 7.5, 7.5]), extrinsics=extrinsics,
-    )
-
-
-def write_dense_recording(folder: Path, split: str, variation, seed: int, ticks: int) -> Path:
-    """A synthetic push_buttons recording with ``ticks`` dense frames at RECORDED_FPS, keyframes at the
-    first and last tick, the gripper closing half way, random joints and poses (both quaternion signs)."""
-    rng = np.random.default_rng(seed)
-    task = get_task("push_buttons")
-    info = EpisodeInfo(FORMAT_VERSION, "push_buttons", split, variation.id, list(variation.words), seed,
-                       task.instruction(variation, seed), CAMERAS, SIZE, float(RECORDED_FPS))
-    path = folder / f"push_buttons_{split}_var{variation.id:04d}_seed{seed:010d}.mcap"
-    writer = EpisodeWriter(path, info)
-    tick_ns = 1_000_000_000 // RECORDED_FPS
-    for i in range(ticks):
-        keyframe = i in (0, ticks - 1)
-        pose = np.concatenate([rng.uniform(-1, 1, 3), Rotation.random(random_state=seed * 1000 + i).as_quat()])
-        robot = RobotState(rng.uniform(-2, 2, 7), pose, float(i < ticks // 2), 0.04)
-        index = int(i == ticks - 1)
-        writer.write_frame(Frame(i * tick_ns, keyframe, True, index, robot, {c: _camera(rng) for c in CAMERAS}))
-        if keyframe:
-            writer.write_keyframe(Keyframe(index, i * tick_ns, pose, robot.gripper_open, pose,
-                                           "start" if i == 0 else "planned"))
-    return writer.close(ticks * tick_ns, True, [], {"demo_factory": "test"})
+RECORDED_FPS = 4  # write_dense_recording's rate
 
 
 @pytest.fixture(scope="module")
-def dense_recordings(tmp_path_factory):
+def dense_recordings(tmp_path_factory, write_dense_recording):
     folder = tmp_path_factory.mktemp("dense_raw")
     train = get_task("push_buttons").split_variations("train")
     test = get_task("push_buttons").split_variations("test")
@@ -186,7 +141,7 @@ def test_keyframe_export_suggests_hiveformer(dense_recordings, tmp_path, capsys)
     assert "lerobot-train --policy.type=hiveformer" in (out / "README.md").read_text()
 
 
-def test_lerobot_doctor_gate_passes_the_suggested_act_chunk(tmp_path):
+def test_lerobot_doctor_gate_passes_the_suggested_act_chunk(tmp_path, write_dense_recording):
     gate = pytest.importorskip("lerobot_doctor.gate", reason="lerobot-doctor is not installed (pip install lerobot-doctor)")
     raw = tmp_path / "raw"
     raw.mkdir()

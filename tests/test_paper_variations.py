@@ -1,9 +1,6 @@
 """The HiveFormer paper's variation ids and its human-written instructions (the authors' annotations.json)."""
 
 import json
-import os
-
-os.environ.setdefault("HF_HUB_OFFLINE", "1")
 
 import pytest
 

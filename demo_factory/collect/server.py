@@ -39,6 +39,7 @@ from demo_factory.collect.store import (
     EntryError,
     InstructionFile,
     check_writer,
+    entry_json,
 )
 from demo_factory.instructions.human import HumanInstructionError
 
@@ -106,7 +107,7 @@ class CollectApp:
             "limits": {"instruction_min": INSTRUCTION_MIN_CHARS, "instruction_max": INSTRUCTION_MAX_CHARS,
                        "writer_max": WRITER_MAX_CHARS},
             "progress": self.instructions.progress(writer),
-            "last": {**last.to_json(), "variation": self.variation_json(last.variation_id)} if last else None,
+            "last": {**entry_json(last), "variation": self.variation_json(last.variation_id)} if last else None,
         }
 
     # -- routing -----------------------------------------------------------------------------
@@ -122,10 +123,10 @@ class CollectApp:
                 if method == "POST" and path == "/api/instructions":
                     entry = self.instructions.add(payload.get("writer"), payload.get("variation_id"),
                                                   payload.get("instruction"))
-                    return json_response({"entry": entry.to_json(), "state": self.state_json(entry.author)}, 201)
+                    return json_response({"entry": entry_json(entry), "state": self.state_json(entry.author)}, 201)
                 if method == "PUT" and path == "/api/instructions/last":
                     entry = self.instructions.edit_last(payload.get("writer"), payload.get("instruction"))
-                    return json_response({"entry": entry.to_json(), "state": self.state_json(entry.author)})
+                    return json_response({"entry": entry_json(entry), "state": self.state_json(entry.author)})
             return error_response(f"no such resource: {method} {path}", 404 if method in ("GET", "POST", "PUT") else 405)
         except EntryError as exc:
             return error_response(str(exc), exc.status)

@@ -24,11 +24,11 @@ import re
 import threading
 import zlib
 from contextlib import contextmanager
-from dataclasses import dataclass, replace
+from dataclasses import replace
 from datetime import datetime, timezone
 from pathlib import Path
 
-from demo_factory.instructions.human import FIELDS, load_human_instructions
+from demo_factory.instructions.human import FIELDS, HumanInstruction, load_human_instructions
 from demo_factory.tasks import Task
 
 INSTRUCTION_MIN_CHARS = 3
@@ -48,19 +48,9 @@ class EntryError(ValueError):
         self.status = status
 
 
-@dataclass(frozen=True)
-class Entry:
-    """One row of the task in the file; ``line`` is its 0-based index among the file's lines."""
-
-    line: int
-    variation_id: int
-    words: tuple[str, ...]
-    instruction: str
-    author: str | None
-    language: str
-
-    def to_json(self) -> dict:
-        return {"variation_id": self.variation_id, "instruction": self.instruction, "author": self.author}
+def entry_json(entry: HumanInstruction) -> dict:
+    """What the page shows of one row."""
+    return {"variation_id": entry.variation_id, "instruction": entry.instruction, "author": entry.author}
 
 
 # -- validation (pure) -----------------------------------------------------------------------------
@@ -136,8 +126,8 @@ class InstructionFile:
         self._signature = ("unread",)  # never a real signature: the first access reads the file
         self._ends_with_newline = True
         self._lines: list[str] = []
-        self._entries: list[Entry] = []  # this task's rows, in file order
-        self._keys: dict[tuple[str, str], int] = {}  # duplicate key → line
+        self._entries: list[HumanInstruction] = []  # this task's rows, in file order
+        self._keys: dict[tuple[str, str], int] = {}  # duplicate key → 1-based line
         with self._locked():
             pass
 
@@ -156,9 +146,8 @@ class InstructionFile:
         text = self.path.read_text(encoding="utf-8") if signature is not None else ""
         rows = load_human_instructions(self.path) if text.strip() else []
         self._lines = text.splitlines()
-        self._keys = {duplicate_key(r.task, r.instruction): r.line - 1 for r in rows}
-        self._entries = [Entry(r.line - 1, r.variation_id, r.words, r.instruction, r.author, r.language)
-                         for r in rows if r.task == self.task.name]
+        self._keys = {duplicate_key(r.task, r.instruction): r.line for r in rows}
+        self._entries = [r for r in rows if r.task == self.task.name]
         self._ends_with_newline = not text or text.endswith("\n")
         self._signature = signature
 
@@ -193,7 +182,7 @@ class InstructionFile:
         finally:
             os.close(fd)  # releases the flock
 
-    def entries(self) -> list[Entry]:
+    def entries(self) -> list[HumanInstruction]:
         with self._locked():
             return list(self._entries)
 
@@ -222,7 +211,7 @@ class InstructionFile:
                 "mine_variations": len({e.variation_id for e in mine}),
             }
 
-    def last_entry(self, writer: str) -> Entry | None:
+    def last_entry(self, writer: str) -> HumanInstruction | None:
         with self._locked():
             return next((e for e in reversed(self._entries) if e.author == writer), None)
 
@@ -252,7 +241,7 @@ class InstructionFile:
         if line is not None and line != replacing:
             raise EntryError("this instruction is already in the file; please write it in your own words", 409)
 
-    def add(self, writer, variation_id, instruction) -> Entry:
+    def add(self, writer, variation_id, instruction) -> HumanInstruction:
         """Validate and append one instruction; ``EntryError`` says what to fix."""
         writer, instruction = check_writer(writer), check_instruction(instruction)
         if not isinstance(variation_id, int) or isinstance(variation_id, bool) or variation_id not in self._test_ids:
@@ -271,8 +260,8 @@ class InstructionFile:
             if created:
                 _fsync_folder(self.path.parent)
             # Under the flock nobody else wrote: update the view instead of re-validating the file.
-            entry = Entry(len(self._lines), variation_id, self.task.variation(variation_id).words, instruction,
-                          writer, self.language)
+            entry = HumanInstruction(self.task.name, variation_id, self.task.variation(variation_id).words, instruction,
+                                     writer, self.language, line=len(self._lines) + 1)
             self._lines.append(line)
             self._entries.append(entry)
             self._keys[duplicate_key(self.task.name, instruction)] = entry.line
@@ -280,7 +269,7 @@ class InstructionFile:
             self._signature = self._stat_signature()
             return entry
 
-    def edit_last(self, writer, instruction) -> Entry:
+    def edit_last(self, writer, instruction) -> HumanInstruction:
         """Replace the text of ``writer``'s most recent entry (the whole file is rewritten atomically)."""
         writer, instruction = check_writer(writer), check_instruction(instruction)
         with self._locked(write=True):
@@ -288,10 +277,10 @@ class InstructionFile:
             if entry is None:
                 raise EntryError(f"writer {writer} has no entry to edit yet", 404)
             self._check_new_text(instruction, replacing=entry.line)
-            row = json.loads(self._lines[entry.line])
+            row = json.loads(self._lines[entry.line - 1])
             row["instruction"] = instruction
             lines = list(self._lines)
-            lines[entry.line] = json.dumps(row)
+            lines[entry.line - 1] = json.dumps(row)
             partial = self.path.with_name(f".{self.path.name}.{os.getpid()}.partial")
             mode = self.path.stat().st_mode & 0o777
             fd = os.open(partial, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, mode)

@@ -87,6 +87,14 @@ def marker(world, position, radius: float, rgba) -> int:
     return add_body(world, [Part("sphere", (radius,), rgba=tuple(rgba))], position, collision=False)
 
 
+def hold_where_left(world, body: int, links, torque: float) -> None:
+    """Give a jointed body's ``links`` a grippy surface (friction 1.5) and its joint 0 friction: a velocity motor
+    at rest with ``torque`` N·m of force keeps the joint where the gripper leaves it."""
+    for link in links:
+        p.changeDynamics(body, link, lateralFriction=1.5, physicsClientId=world.client)
+    p.setJointMotorControl2(body, 0, p.VELOCITY_CONTROL, targetVelocity=0.0, force=torque, physicsClientId=world.client)
+
+
 # -- state checks ------------------------------------------------------------------------------
 def at_rest(world, body: int) -> bool:
     linear, angular = p.getBaseVelocity(body, physicsClientId=world.client)

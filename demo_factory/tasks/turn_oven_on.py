@@ -8,7 +8,7 @@ from scipy.spatial.transform import Rotation
 
 from demo_factory.tasks.base import KeyframeTarget, PlacementTask
 from demo_factory.tasks.motions import CLOSED, OPEN, pose
-from demo_factory.tasks.objects import Part, add_body, free_of_robot
+from demo_factory.tasks.objects import Part, add_body, free_of_robot, hold_where_left
 from demo_factory.tasks.variations import Variation
 
 # The oven, in its own frame: the front faces -x (the robot, at zero yaw), the origin is the body's centre.
@@ -91,10 +91,7 @@ def _make_knob(world, position, orientation) -> int:
         linkParentIndices=[0, 1], linkJointTypes=[p.JOINT_REVOLUTE, p.JOINT_FIXED],
         linkJointAxis=[(-1, 0, 0), (0, 0, 1)], physicsClientId=client,
     )
-    for link in (0, 1):
-        p.changeDynamics(body, link, lateralFriction=1.5, physicsClientId=client)
-    p.setJointMotorControl2(body, 0, p.VELOCITY_CONTROL, targetVelocity=0.0, force=FRICTION_TORQUE,
-                            physicsClientId=client)
+    hold_where_left(world, body, (0, 1), FRICTION_TORQUE)
     return body
 
 

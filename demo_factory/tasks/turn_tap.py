@@ -7,7 +7,7 @@ import pybullet as p
 
 from demo_factory.tasks import motions
 from demo_factory.tasks.base import Failure, KeyframeTarget, Task
-from demo_factory.tasks.objects import free_of_robot
+from demo_factory.tasks.objects import free_of_robot, hold_where_left
 from demo_factory.tasks.variations import Variation
 
 TAPS = ("left", "right")  # as seen from the robot: left is +y
@@ -40,9 +40,7 @@ def _make_tap(world, position) -> int:
         linkParentIndices=[0], linkJointTypes=[p.JOINT_REVOLUTE], linkJointAxis=[(0, 0, 1)],
         physicsClientId=client,
     )
-    p.changeDynamics(body, 0, lateralFriction=1.5, physicsClientId=client)
-    p.setJointMotorControl2(body, 0, p.VELOCITY_CONTROL, targetVelocity=0.0, force=FRICTION_TORQUE,
-                            physicsClientId=client)
+    hold_where_left(world, body, (0,), FRICTION_TORQUE)
     return body
 
 

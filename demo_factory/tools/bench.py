@@ -365,8 +365,8 @@ def bench_hiveformer_training(episodes: int, train_steps: int) -> dict:
 
     Items/s are measured on 128x128 push_buttons keyframe datasets (3 cameras, history 6, every
     observation key and the action), stock vs the plugin's reader. The training step against its kernel
-    floor is measured in `make reference`'s recipe and in the plugin's defaults (the authors' whole-episode
-    samples). `updt_s` / `data_s` come from `lerobot-train --policy.type=hiveformer` with the reference run's
+    floor is measured in `make reference`'s recipe with and without the compiled CPU loops and in the plugin's
+    defaults (the authors' whole-episode samples). `updt_s` / `data_s` come from `lerobot-train --policy.type=hiveformer` with the reference run's
     settings (its image size, batch, one-hot instructions, one loader worker, its recipe) on a dataset
     generated at that size.
     """
@@ -383,8 +383,10 @@ def bench_hiveformer_training(episodes: int, train_steps: int) -> dict:
                     log=lambda _: None)
         figures["history_reading_128px"] = _history_items_per_second(Path(folder) / "converted128" / "train", 6, 120)
         reference = Path(folder) / f"converted{REFERENCE_IMAGE_SIZE}" / "train"
-        # make reference's recipe (windows, 7-channel stem), then the plugin's defaults (the authors' whole episodes)
-        for name, settings in (("", SEEN_RECIPE), ("_whole_episodes", {"cpu_kernels": True})):
+        # make reference's recipe (windows, 7-channel stem) with the compiled CPU loops and without them (PyTorch
+        # alone, what a user without the [cpu] extra runs), then the plugin's defaults (the authors' whole episodes)
+        for name, settings in (("", SEEN_RECIPE), ("_pytorch", SEEN_RECIPE | {"cpu_kernels": False}),
+                               ("_whole_episodes", {"cpu_kernels": True})):
             figures[f"train_step_against_kernel_floor{name}"] = train_step_against_kernel_floor(
                 reference, steps=min(train_steps, 10), settings=settings)
         output_dir = Path(folder) / "train"

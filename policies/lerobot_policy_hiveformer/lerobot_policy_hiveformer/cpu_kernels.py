@@ -50,6 +50,17 @@ def _centre_and_scale(mean, rstd, weight, i, per_group):  # pragma: no cover (co
     return centre, scale
 
 
+@njit(inline="always")
+def _centred_and_gradient(x, grad, centre, scale, bias, slope, i, p, c):  # pragma: no cover (compiled)
+    """x's value centred on its group's mean, and the gradient at its normalised value: through the LeakyReLU,
+    whose sign is recomputed from x as the forward pass computed it. Inlined: the loops keep their fastmath."""
+    centred = x[i, p, c] - centre[c]
+    dy = grad[i, p, c]
+    if centred * scale[c] + bias[c] <= 0:
+        dy *= slope
+    return centred, dy
+
+
 @njit(parallel=True, cache=True, fastmath=_FASTMATH)
 def _forward(x, weight, bias, groups, eps, slope, out, mean, rstd):  # pragma: no cover (compiled)
     """x, out (N, P, C); weight, bias (C,); mean and rstd (N, groups) written for the backward pass.
@@ -93,16 +104,11 @@ def _backward(grad, x, weight, bias, groups, slope, mean, rstd,
     count = pixels * per_group
     for i in prange(maps):
         centre, scale = _centre_and_scale(mean, rstd, weight, i, per_group)
-        # dy: the gradient at the normalised value, i.e. through the LeakyReLU, whose sign is recomputed from x
-        # as the forward pass computed it.
         dy_sum = np.zeros(channels, np.float64)
         dy_dot_centred = np.zeros(channels, np.float64)
         for p in range(pixels):
             for c in range(channels):
-                centred = x[i, p, c] - centre[c]
-                dy = grad[i, p, c]
-                if centred * scale[c] + bias[c] <= 0:
-                    dy *= slope
+                centred, dy = _centred_and_gradient(x, grad, centre, scale, bias, slope, i, p, c)
                 dy_sum[c] += dy
                 dy_dot_centred[c] += np.float64(dy) * centred
         # dx = rstd * (dy * weight - mean(dy * weight) - x_hat * mean(dy * weight * x_hat)), means per group:
@@ -128,10 +134,7 @@ def _backward(grad, x, weight, bias, groups, slope, mean, rstd,
                 constant[c] = -r * mean_grad
         for p in range(pixels):
             for c in range(channels):
-                centred = x[i, p, c] - centre[c]
-                dy = grad[i, p, c]
-                if centred * scale[c] + bias[c] <= 0:
-                    dy *= slope
+                centred, dy = _centred_and_gradient(x, grad, centre, scale, bias, slope, i, p, c)
                 grad_x[i, p, c] = centred * centred_coefficient[c] + dy * dy_coefficient[c] + constant[c]
 
 

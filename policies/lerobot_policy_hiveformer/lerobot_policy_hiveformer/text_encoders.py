@@ -108,20 +108,24 @@ REBUILT_BUFFERS = {"embeddings.position_ids"}
 def _load_text_model(model_dir: Path):
     """A local BERT-style model, checked here instead of by transformers' load report: that report lists a
     checkpoint's saved position ids as UNEXPECTED and a progress bar prints at every load, which reads as an error
-    at every evaluation. Both are off during the load only; a real mismatch of weights is raised."""
+    at every evaluation. Both are off during the load only; a real mismatch of weights is raised. (With its
+    report's logger above WARNING, transformers also checks a tensor-parallel plan that a BERT loaded on one device
+    never uses and warns that no layer was sharded: that logger is quiet during the load too.)"""
     import logging
 
     from transformers import AutoModel
     from transformers.utils import logging as transformers_logging
 
-    report = logging.getLogger("transformers.modeling_utils")
-    level, bars = report.level, transformers_logging.is_progress_bar_enabled()
-    report.setLevel(logging.ERROR)
+    quiet = [logging.getLogger(f"transformers.{name}") for name in ("modeling_utils", "integrations.tensor_parallel")]
+    levels, bars = [logger.level for logger in quiet], transformers_logging.is_progress_bar_enabled()
+    for logger in quiet:
+        logger.setLevel(logging.ERROR)
     transformers_logging.disable_progress_bar()
     try:
         model, info = AutoModel.from_pretrained(model_dir, local_files_only=True, output_loading_info=True)
     finally:
-        report.setLevel(level)
+        for logger, level in zip(quiet, levels):
+            logger.setLevel(level)
         if bars:
             transformers_logging.enable_progress_bar()
     unexpected = set(info["unexpected_keys"]) - REBUILT_BUFFERS
