@@ -307,6 +307,7 @@ def test_cli_bad_input_is_one_line_and_exit_2(tmp_path, capsys):
     with pytest.raises(SystemExit) as exit_:
         run("--out", str(tmp_path / "x.jsonl"), "--port", "70000")
     assert exit_.value.code == 2
+    assert "70000 is not a port number; accepted: 1-65535, or 0 for any free port" in capsys.readouterr().err
     assert sorted(p.name for p in tmp_path.iterdir()) == ["broken.jsonl", "folder.jsonl"]  # nothing written
 
 

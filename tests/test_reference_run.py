@@ -70,19 +70,28 @@ def test_the_checkpoint_kept_is_the_best_on_validation_the_later_on_a_tie():
     assert selected_step(curve[:1]) == 500
 
 
-def test_curve_must_divide_the_steps():
-    with pytest.raises(SystemExit):
-        main(["--steps", "10", "--curve", "3"])
-    with pytest.raises(SystemExit):
-        main(["--policy", "act", "--task", "tower"])
-    for wrong in (["--unseen", "--task", "tower"], ["--unseen", "--variation", "150"], ["--unseen", "--variation", "red"],
-                  ["--unseen", "--variation", "3", "--train-variations", "5"], ["--train-variations", "5"],
-                  ["--unseen", "--train-variations", "101"], ["--human-instructions", "x.json"],
-                  ["--unseen", "--human-instructions", "/nonexistent.json"], ["--train-arg", "policy.whole_episodes"],
-                  ["--policy", "act", "--train-arg=--steps=3"], ["--unseen", "--text-encoder", "bogus"],
-                  ["--extra-episodes", "-1"], ["--unseen", "--extra-episodes", "5"], ["--policy", "act", "--extra-episodes", "5"]):
-        with pytest.raises(SystemExit):
-            main(wrong)
+@pytest.mark.parametrize("argv, message", [
+    (["--steps", "10", "--curve", "3"], "--curve 3: a positive number of checkpoints that divides --steps 10"),
+    (["--policy", "act", "--task", "tower"], "--task tower: the act reference run is push_buttons only"),
+    (["--unseen", "--task", "tower"], "--unseen is the HiveFormer push_buttons run on the paper's train variations"),
+    (["--unseen", "--variation", "150"], "--variation 150: with --unseen, a paper train id 0-99"),
+    (["--unseen", "--variation", "red"], "--variation red: with --unseen, a paper train id 0-99"),
+    (["--unseen", "--variation", "3", "--train-variations", "5"], "--variation and --train-variations: with --unseen, one"),
+    (["--train-variations", "5"], "--train-variations 5: with --unseen, 1 to 100"),
+    (["--unseen", "--train-variations", "101"], "--train-variations 101: with --unseen, 1 to 100"),
+    (["--human-instructions", "x.json"], "--human-instructions x.json: only with --unseen"),
+    (["--unseen", "--human-instructions", "/nonexistent.json"], "--human-instructions /nonexistent.json: not a file"),
+    (["--train-arg", "policy.whole_episodes"], "--train-arg 'policy.whole_episodes': expected --KEY=VALUE"),
+    (["--policy", "act", "--train-arg=--steps=3"], "--train-arg: HiveFormer runs only"),
+    (["--unseen", "--text-encoder", "bogus"], "argument --text-encoder: invalid choice: 'bogus'"),
+    (["--extra-episodes", "-1"], "--extra-episodes -1: a number >= 0"),
+    (["--unseen", "--extra-episodes", "5"], "--extra-episodes 5: a number >= 0, above 0 only for HiveFormer runs without"),
+    (["--policy", "act", "--extra-episodes", "5"], "--extra-episodes 5: a number >= 0, above 0 only for HiveFormer runs"),
+])
+def test_bad_options_are_refused_naming_the_value(argv, message, capsys):
+    with pytest.raises(SystemExit) as exit_:
+        main(argv)
+    assert exit_.value.code == 2 and message in capsys.readouterr().err
 
 
 def test_act_reference_trains_with_the_chunk_its_shortest_episode_holds(tmp_path):

@@ -143,9 +143,10 @@ def test_tasks_command_lists_category_and_variation_count(capsys):
     assert "  screw               every task of the HiveFormer paper's screw category: turn_oven_on, open_wine_bottle" in out
 
 
-def test_suite_generation_refuses_task_options():
-    with pytest.raises(SystemExit):
+def test_suite_generation_refuses_task_options(capsys):
+    with pytest.raises(SystemExit) as exit_:
         main(["generate", "--suite", "ten_tasks", "--task", "tower", "--out", "x"])
+    assert exit_.value.code == 2 and "argument --task: not allowed with argument --suite" in capsys.readouterr().err
 
 
 @pytest.mark.slow
