@@ -143,9 +143,9 @@ def test_corrupted_split_has_no_seen_colour_word(converted):
     assert all(corrupted[i]["task"] in tasks for i in range(len(corrupted)))
 
 
-def test_synthetic_splits_list_every_synthetic_instruction_of_each_task(converted):
-    """meta/task_paraphrases.json: each task string -> its variation's synthetic instructions (itself among
-    them), for the policy to draw from; the corrupted and human splits have none."""
+def test_synthetic_splits_list_every_phrasing_of_each_task(converted):
+    """meta/task_paraphrases.json: each task string -> its variation's phrasings from the task's grammar (the
+    templates first, itself among them), for the policy to draw from; the other test splits have none."""
     task = get_task("push_buttons")
     for split in ("train", "val", "test_unseen_synthetic"):
         dataset = _load(converted, split)
@@ -154,9 +154,25 @@ def test_synthetic_splits_list_every_synthetic_instruction_of_each_task(converte
         for episode in read_dataset_provenance(dataset.root)[1]["episodes"]:
             variation = Variation(episode["variation_id"], tuple(episode["colours"]))
             alternatives = paraphrases[episode["instruction"]]
-            assert alternatives == task.synthetic_instructions(variation) and len(alternatives) == 4
-    for split in ("test_unseen_corrupted", "test_unseen_human"):
+            assert alternatives == task.paraphrases(variation) and len(set(alternatives)) >= 30
+            assert alternatives[:4] == task.synthetic_instructions(variation) and episode["instruction"] in alternatives
+    for split in ("test_unseen_corrupted", "test_unseen_paraphrased", "test_unseen_human"):
         assert not (converted / split / PARAPHRASES_FILE).exists()
+
+
+def test_paraphrased_split_instructs_test_episodes_with_phrasings_no_training_source_holds(converted):
+    task = get_task("push_buttons")
+    training = {text for split in ("train", "val") for texts in
+                json.loads((converted / split / PARAPHRASES_FILE).read_text()).values() for text in texts}
+    synthetic = read_dataset_provenance(converted / "test_unseen_synthetic")[1]["episodes"]
+    paraphrased = read_dataset_provenance(converted / "test_unseen_paraphrased")[1]["episodes"]
+    assert [(e["recording"], e["variation_id"]) for e in paraphrased] == [(e["recording"], e["variation_id"])
+                                                                            for e in synthetic]
+    for episode in paraphrased:
+        variation = Variation(episode["variation_id"], tuple(episode["colours"]))
+        assert episode["instruction"] in task.held_out_phrasings(variation) and episode["instruction"] not in training
+        assert episode["instruction"] == task.held_out_instruction(variation, episode["episode_seed"])
+    assert "`test_unseen_paraphrased` instructs each test episode" in (converted / "README.md").read_text()
 
 
 def test_train_splits_list_each_episode_s_relabels_none_of_a_test_variation(tmp_path, write_recording):

@@ -90,6 +90,7 @@ def test_a_reference_run_summary_becomes_a_row_and_the_table_follows(tmp_path):
                "train_step": {"updt_s": 0.371},
                "results": {"splits": {"train": {"success_rate": 1.0}, "test_unseen_synthetic": {"success_rate": 0.9},
                                       "test_unseen_corrupted": {"success_rate": 0.125},
+                                      "test_unseen_paraphrased": {"success_rate": 0.5},
                                       "test_unseen_human": {"success_rate": 0.65}}}}
     table = tmp_path / "runs.csv"
     row = runs.run_row(summary, "a test run")
@@ -101,8 +102,9 @@ def test_a_reference_run_summary_becomes_a_row_and_the_table_follows(tmp_path):
         **{column: "" for column in runs.COLUMNS}, "command": "python -m demo_factory.tools.reference_run --unseen --seed 2",
         "recipe": "make reference-unseen", "task": "push_buttons", "seed": "2", "steps": "8000", "s_per_step": "0.371",
         "wall_min": "55", "seen": "100.0", "unseen_synthetic": "90.0", "unseen_corrupted": "12.5",
-        "unseen_human": "65.0", "status": "completed", "current": "0", "note": "a test run"}
-    assert "MiniLM | 3 | 100 | 90 | 12.5 | 65 | 55 |" in runs.results_table(rows)
+        "unseen_paraphrased": "50.0", "unseen_human": "65.0", "status": "completed", "current": "0",
+        "note": "a test run"}
+    assert "MiniLM | 3 | 100 | 90 | 12.5 | 50 | 65 | 55 |" in runs.results_table(rows)
 
 
 def test_runs_add_refuses_a_file_that_is_no_run_summary(tmp_path, capsys):

@@ -83,7 +83,7 @@ def test_bad_evaluation_input_is_one_line_and_exit_2(tmp_path, args, message):
 @pytest.mark.slow
 def test_expert_on_the_splits_of_a_converted_dataset(converted_push_buttons, tmp_path):
     out = tmp_path / "eval"
-    splits = "test_unseen_synthetic,test_unseen_corrupted"
+    splits = "test_unseen_synthetic,test_unseen_corrupted,test_unseen_paraphrased"
     result = evaluate("--expert", "--dataset", str(converted_push_buttons), "--splits", splits, "--episodes", "3",
                       "--out", str(out))
     assert result.returncode == 0, result.stderr
@@ -94,7 +94,17 @@ def test_expert_on_the_splits_of_a_converted_dataset(converted_push_buttons, tmp
                  if '"test_unseen_corrupted"' in line]
     dataset_tasks = json.loads((converted_push_buttons / "test_unseen_corrupted" / "meta" / "demo_factory.json").read_text())
     assert {e["instruction"] for e in corrupted} <= {e["instruction"] for e in dataset_tasks["episodes"]}
-    assert "| HiveFormer (paper) | 86.3 | 85.6 |" in (out / "results.md").read_text()
+    table = (out / "results.md").read_text()
+    assert "| HiveFormer (paper) | 86.3 | 85.6 |" in table
+    # The held-out phrasings one by one: each sentence, its variation, episodes and successes.
+    sentences = results["splits"]["test_unseen_paraphrased"]["per_sentence"]
+    held_out = [json.loads(line) for line in (out / "episodes.jsonl").read_text().splitlines()
+                if '"test_unseen_paraphrased"' in line]
+    assert sum(row["episodes"] for row in sentences) == 3 == sum(row["successes"] for row in sentences)
+    assert {row["instruction"] for row in sentences} == {e["instruction"] for e in held_out}
+    assert "## test_unseen_paraphrased: per sentence" in table
+    assert all(f"| {row['instruction']} | {row['variation_id']} | " in table for row in sentences)
+    assert "per_sentence" not in results["splits"]["test_unseen_synthetic"]
 
 
 @pytest.fixture(scope="module")

@@ -111,3 +111,47 @@ def test_assignment_uses_every_row_and_every_episode(tmp_path):
     assert pairs == [("a-ep0", "a0"), ("a-ep0", "a1"), ("a-ep0", "a2"), ("b-ep0", "b0"), ("b-ep1", "b0")]
     assert [r.instruction for r in result.rows_without_episodes] == ["c0"]
     assert result.episodes_without_rows == ["other"]
+
+
+@pytest.mark.parametrize("task_name", ["push_buttons", "tower"])
+def test_the_grammar_gives_tens_of_distinct_sentences_a_variation_the_same_each_time(task_name):
+    task = get_task(task_name)
+    variations = task.split_variations("train") + task.split_variations("test")
+    distinct = [len(set(task.paraphrases(v))) for v in variations]
+    assert sum(distinct) / len(distinct) >= 30
+    for v in variations[::17]:
+        phrasings = task.paraphrases(v)
+        assert phrasings[:len(task.synthetic_instructions(v))] == task.synthetic_instructions(v)  # templates first
+        assert phrasings == task.paraphrases(v)  # deterministic
+        assert len(phrasings) == len(set(phrasings))
+
+
+@pytest.mark.parametrize("task_name", ["push_buttons", "tower"])
+def test_grammar_sentences_name_the_colours_in_order_and_stay_apart_from_the_test_splits(task_name):
+    """Every sentence names the variation's colours in order (by the palette name or another name of it, never
+    mangled by a typo); none uses a corrupted-split synonym or a word of the held-out phrasings; no held-out
+    phrasing is a paraphrase of any variation."""
+    import re
+
+    from demo_factory.tasks.grammar import COLOUR_NAMES, HELD_OUT_MARKERS
+
+    task = get_task(task_name)
+    banned = [*COLOUR_SYNONYMS.values(), *HELD_OUT_MARKERS]
+    training = set()
+    for v in task.split_variations("train") + task.split_variations("test"):
+        for sentence in task.paraphrases(v):
+            training.add(sentence)
+            found = [m for m in banned if re.search(rf"\b{re.escape(m)}\b", sentence, re.IGNORECASE)]
+            assert not found, (sentence, found)
+            names = {n: c for c in v.words for n in (c, *COLOUR_NAMES.get(c, ()))}
+            pattern = "|".join(re.escape(n) for n in sorted(names, key=len, reverse=True))
+            text = sentence.lower()
+            if task_name == "tower":  # its target is "the grey square" or "the grey target"
+                text = re.sub(r"\b(on|onto|to) the grey \w+", "on the target", text)
+            named = [names[n] for n in re.findall(rf"\b({pattern})\b", text)]
+            assert list(dict.fromkeys(named)) == list(v.words), (sentence, v.words)
+    for v in task.split_variations("test"):
+        held_out = task.held_out_phrasings(v)
+        assert held_out and not set(held_out) & training
+        assert all(any(re.search(rf"\b{re.escape(m)}\b", t, re.IGNORECASE) for m in HELD_OUT_MARKERS) for t in held_out)
+        assert task.held_out_instruction(v, 5) in held_out

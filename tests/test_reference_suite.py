@@ -67,6 +67,15 @@ def test_a_suite_run_takes_each_tasks_first_train_variation_and_its_recipe(tmp_p
     assert all(f"--policy.{name}={str(value).lower()}" in command for name, value in SUITE_RECIPE.items())
 
 
+def test_a_task_name_runs_the_suite_chain_on_that_task_alone(tmp_path, capsys):
+    args = parse_arguments(["--suite", "pick_and_lift", "--out", str(tmp_path)])
+    assert args.variations == {"pick_and_lift": str(get_task("pick_and_lift").split_variations("train")[0].id)}
+    assert (args.steps, args.eval_episodes, args.text_encoder) == (12000, 20, "one_hot")
+    with pytest.raises(SystemExit):
+        parse_arguments(["--suite", "no_such_task"])
+    assert "argument --suite: invalid choice: 'no_such_task'" in capsys.readouterr().err
+
+
 @pytest.mark.parametrize("other", [["--task", "tower"], ["--unseen"], ["--variation", "3"], ["--policy", "act"]])
 def test_a_suite_run_refuses_single_task_options(other, capsys):
     with pytest.raises(SystemExit) as exit_:

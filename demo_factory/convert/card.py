@@ -231,6 +231,17 @@ def render_card(result: ConvertResult, template: Path = TEMPLATE) -> str:
         task_text = (f"{task.description} The HiveFormer paper's task {_categories(task)}. "
                      f"Palette ({len(task.palette)} colours): {', '.join(task.palette)}. "
                      f"Synthetic instruction templates, e.g. for {', '.join(v.words)}: {example}.")
+        phrasings = task.paraphrases(v)
+        if len(phrasings) > len(task.synthetic_instructions(v)):
+            drawn = "; ".join(f'"{t}"' for t in phrasings[len(task.synthetic_instructions(v)):][:6])
+            task_text += (f" Training may draw among {len(phrasings)} phrasings of each variation's instruction "
+                          f"(`meta/task_paraphrases.json`, from the task's grammar: other verbs, ways to say the "
+                          f"order, colour names, politeness, typos), e.g. {drawn}.")
+        held_out = task.held_out_phrasings(task.split_variations("test")[0])
+        if held_out:
+            task_text += (" `test_unseen_paraphrased` instructs each test episode with a phrasing written for that "
+                          "split, unlike every template and grammar sentence and in no training source, e.g. "
+                          + "; ".join(f'"{t}"' for t in held_out) + ".")
         default_test = {v.id for v in task.split_variations("test")}
         named = sorted({(s.variation_id, ",".join(s.words)) for s in result.sources
                         if s.split == "test" and s.variation_id not in default_test})

@@ -18,9 +18,9 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
         "convert",
         help="convert MCAP episode recordings to LeRobot v3.0 datasets (one per split) with a dataset card",
         description=(
-            "Writes OUT/{train,val,test_unseen_synthetic,test_unseen_corrupted,test_unseen_human}/, each a "
-            "LeRobot v3.0 dataset with repo id REPO_ID_<split>, plus OUT/README.md (the dataset card). "
-            "Splits without episodes are skipped."
+            "Writes OUT/{train,val,test_unseen_synthetic,test_unseen_corrupted,test_unseen_paraphrased,"
+            "test_unseen_human}/, each a LeRobot v3.0 dataset with repo id REPO_ID_<split>, plus OUT/README.md (the "
+            "dataset card). Splits without episodes are skipped."
         ),
     )
     parser.add_argument("--in", dest="inputs", type=Path, nargs="+", required=True, metavar="PATH",

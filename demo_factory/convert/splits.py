@@ -9,11 +9,13 @@ train                      train variations      synthetic (as recorded)
 val                        train variations      synthetic; held-out *episodes* (--val-ratio)
 test_unseen_synthetic      test variations       synthetic (as recorded)
 test_unseen_corrupted      test variations       synthetic with colour words → unseen synonyms
+test_unseen_paraphrased    test variations       a held-out phrasing (``Task.held_out_phrasings``)
 test_unseen_human          test variations       human-written, from a file (see instructions.human)
 =========================  ====================  ==========================================
 
-The three test splits hold the same test-variation recordings (the human split repeats or leaves
-out episodes as the assignment rule says). A split with no episodes is not written.
+The test splits hold the same test-variation recordings (the human split repeats or leaves out
+episodes as the assignment rule says; the paraphrased one holds those of tasks with held-out
+phrasings). A split with no episodes is not written.
 """
 
 from __future__ import annotations
@@ -24,12 +26,14 @@ from pathlib import Path
 
 from demo_factory.instructions import HumanInstruction, assign_human_instructions, corrupt_instruction
 from demo_factory.instructions.human import HumanAssignment
+from demo_factory.tasks import Variation, get_task
 
 DATASET_SPLITS: dict[str, str] = {  # split → instruction source
     "train": "synthetic",
     "val": "synthetic",
     "test_unseen_synthetic": "synthetic",
     "test_unseen_corrupted": "corrupted",
+    "test_unseen_paraphrased": "paraphrased",
     "test_unseen_human": "human",
 }
 
@@ -110,6 +114,9 @@ def plan_splits(
     for e in test:
         plans["test_unseen_synthetic"].episodes.append(PlannedEpisode(e, e.instruction))
         plans["test_unseen_corrupted"].episodes.append(PlannedEpisode(e, corrupt_instruction(e.instruction)))
+        held_out = get_task(e.task).held_out_instruction(Variation(e.variation_id, e.words), e.episode_seed)
+        if held_out is not None:
+            plans["test_unseen_paraphrased"].episodes.append(PlannedEpisode(e, held_out))
     assignment = None
     if human_rows is not None:
         by_variation: dict[int, list[SourceEpisode]] = {}

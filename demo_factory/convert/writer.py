@@ -6,9 +6,10 @@ written as its own LeRobot dataset by a forked process, merged in order with LeR
 recomputed, so the result is the dataset one writer makes (``tests/test_convert_parallel.py``).
 demo-factory's own metadata (provenance of every episode) goes in ``meta/demo_factory.json``: LeRobot
 0.6 drops unknown keys of ``meta/info.json`` when it rewrites it. A split whose instructions are the
-tasks' synthetic ones also lists, in ``meta/task_paraphrases.json``, every synthetic instruction of each
-task string's variation (task string -> instructions that mean the same): a policy may train on all of
-them, as the HiveFormer authors do (the plugin's ``sample_paraphrases``). A keyframe split of train
+tasks' synthetic ones also lists, in ``meta/task_paraphrases.json``, every phrasing of each task string's
+variation (``Task.paraphrases``: task string -> instructions that mean the same; tens for tasks with a
+grammar): a policy may train on all of them, as the HiveFormer authors do (the plugin's
+``sample_paraphrases``). A keyframe split of train
 recordings whose task relabels them (``Task.instruction_relabels``) lists in
 ``meta/instruction_relabels.json`` the other instructions each episode's first keyframes demonstrate (the
 plugin's ``relabel_probability``).
@@ -204,13 +205,13 @@ def restate_index_stats(root: Path) -> None:
 
 
 def task_paraphrases(episodes: list[PlannedEpisode]) -> dict[str, list[str]]:
-    """Each synthetic instruction of the episodes -> every synthetic instruction of its variation."""
+    """Each synthetic instruction of the episodes -> every phrasing of its variation (``Task.paraphrases``)."""
     paraphrases: dict[str, list[str]] = {}
     for planned in episodes:
         source = planned.source
         if planned.instruction not in paraphrases:
             variation = Variation(source.variation_id, source.words)
-            texts = get_task(source.task).synthetic_instructions(variation)
+            texts = get_task(source.task).paraphrases(variation)
             paraphrases[planned.instruction] = texts if planned.instruction in texts else [planned.instruction]
     return paraphrases
 

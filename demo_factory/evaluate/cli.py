@@ -170,7 +170,13 @@ def run(args) -> int:
 
     from demo_factory.evaluate.env import make_env
     from demo_factory.evaluate.policies import CurrentPosePolicy, ExpertPolicy, LeRobotPolicy
-    from demo_factory.evaluate.runner import evaluate_episode, summarise, write_results
+    from demo_factory.evaluate.runner import (
+        PER_SENTENCE_SPLITS,
+        evaluate_episode,
+        per_sentence,
+        summarise,
+        write_results,
+    )
 
     if args.policy_path is not None and not (Path(args.policy_path) / "config.json").is_file():
         raise UsageError(f"--policy.path {args.policy_path}: not a LeRobot checkpoint (no config.json)")
@@ -216,6 +222,9 @@ def run(args) -> int:
         finally:
             env.close()
     results = {split: summarise(split_rows) for split, split_rows in rows.items()}
+    for split in PER_SENTENCE_SPLITS:
+        if rows.get(split):
+            results[split]["per_sentence"] = per_sentence(rows[split])
     records = [row for split_rows in rows.values() for row in split_rows]
     write_results(staging, policy.name, task, results, asdict(control))
     with open(staging / "episodes.jsonl", "w") as stream:
@@ -232,6 +241,9 @@ def run(args) -> int:
         for name, figures in summary.get("per_task", {}).items():
             reasons = ", ".join(f"{k}: {v}" for k, v in figures["failure_reasons"].items()) or "none"
             print(f"    {name:<36} {100 * figures['success_rate']:5.1f}%  over {figures['episodes']}; failures: {reasons}")
+        if "per_sentence" in summary:
+            never = sum(not row["successes"] for row in summary["per_sentence"])
+            print(f"    {len(summary['per_sentence'])} sentences, {never} never followed (each in results.md)")
         if "task_average" in summary:
             print(f"    {'average over the tasks':<36} {100 * summary['task_average']:5.1f}%")
     print(f"results: {out / 'results.md'}, {out / 'results.json'}, {out / 'results.png'}")

@@ -140,6 +140,35 @@ def summarise(records: list[dict]) -> dict:
     return {**block(records), "per_variation": {str(v): block(rows) for v, rows in sorted(by_variation.items())}}
 
 
+# Splits whose sentences differ from episode to episode and are worth reading one by one.
+PER_SENTENCE_SPLITS = ("test_unseen_paraphrased", "test_unseen_human")
+
+
+def per_sentence(records: list[dict]) -> list[dict]:
+    """Each instruction of a split's episodes: its variation, episodes, successes and failure reasons, the
+    sentences that fail most first."""
+    by_sentence = defaultdict(list)
+    for r in records:
+        by_sentence[(r["instruction"], r["task"], r["variation_id"])].append(r)
+    rows = [{"instruction": text, "task": task, "variation_id": variation, "episodes": len(rows),
+             "successes": sum(r["success"] for r in rows),
+             "failure_reasons": dict(Counter(r["failure_reason"] for r in rows if not r["success"]).most_common())}
+            for (text, task, variation), rows in by_sentence.items()]
+    return sorted(rows, key=lambda row: (row["successes"] / row["episodes"], row["instruction"]))
+
+
+def sentence_table(split: str, summary: dict) -> str:
+    """A split's sentences one by one (the failing first), or "" for splits without ``per_sentence``."""
+    if "per_sentence" not in summary:
+        return ""
+    lines = [f"\n## {split}: per sentence\n", "| sentence | variation | episodes | succeeded | failures |",
+             "|---|---:|---:|---:|---|"]
+    lines += [f"| {row['instruction'].replace('|', '/')} | {row['variation_id']} | {row['episodes']} | "
+              f"{row['successes']} | {', '.join(f'{k}: {v}' for k, v in row['failure_reasons'].items())} |"
+              for row in summary["per_sentence"]]
+    return "\n".join(lines) + "\n"
+
+
 def write_results(out: Path, policy_name: str, task: str, results: dict[str, dict], control: dict | None = None) -> None:
     """``results.json``, ``results.md`` (paper layout: rows = policy, columns = split) and a PNG chart;
     ``control`` (how the policy acted: action space, rate, time limit) goes into ``results.json``."""
@@ -159,6 +188,7 @@ def write_results(out: Path, policy_name: str, task: str, results: dict[str, dic
         f"# Closed-loop success rate (%) — {task}\n\n{header}{row}\nEpisodes per split: {episodes}.\n"
         "Paper figures: HiveFormer (CoRL 2022), Table 3 (seen = train variations).\n" + failure_table(results)
         + "".join(task_table(policy_name, task, split, summary) for split, summary in results.items())
+        + "".join(sentence_table(split, summary) for split, summary in results.items())
     )
     _bar_chart(out / "results.png", policy_name, task, results)
 

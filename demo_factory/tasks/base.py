@@ -168,6 +168,22 @@ class Task(ABC):
         options = self.synthetic_instructions(variation)
         return options[np.random.default_rng([episode_seed, 7]).integers(len(options))]
 
+    def paraphrases(self, variation: Variation) -> list[str]:
+        """Every phrasing of the variation's instruction that training may draw (the templates first): what a
+        dataset lists in ``meta/task_paraphrases.json``. By default the templates; a task with a grammar
+        (``demo_factory.instructions.grammar``) gives tens."""
+        return self.synthetic_instructions(variation)
+
+    def held_out_phrasings(self, variation: Variation) -> list[str]:
+        """Phrasings of the variation's instruction unlike any template or paraphrase and kept out of every
+        training source: the ``test_unseen_paraphrased`` split's. By default none (no such split)."""
+        return []
+
+    def held_out_instruction(self, variation: Variation, episode_seed: int) -> str | None:
+        """The held-out phrasing of one test episode, chosen from the episode seed; None without any."""
+        options = self.held_out_phrasings(variation)
+        return options[np.random.default_rng([episode_seed, 11]).integers(len(options))] if options else None
+
     def instruction_relabels(self, variation: Variation, scene: dict) -> list[tuple[Variation, int]]:
         """Other variations whose expert, in the same scene, would start exactly as this episode's did:
         (variation, n) where the episode's first n expert keyframes are that variation's first n. Read

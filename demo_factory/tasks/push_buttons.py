@@ -10,6 +10,7 @@ import pybullet as p
 from demo_factory.sim.world import TOP_DOWN
 from demo_factory.tasks import motions
 from demo_factory.tasks.base import Failure, KeyframeTarget, Task, spread_positions
+from demo_factory.tasks.grammar import Frames, listed, phrasings, pick
 from demo_factory.tasks.palette import PUSH_BUTTON_COLOURS, rgba
 from demo_factory.tasks.variations import PaperNumbering, Variation
 
@@ -42,6 +43,67 @@ def _sequence_text(colours: tuple[str, ...], fmt: str, then: str, last_then: str
     return then.join(parts[:-1]) + last_then + parts[-1]
 
 
+PARAPHRASES = 40  # sentences a variation for training (``Task.paraphrases``), the templates among them
+VERBS = ("press", "push", "hit", "tap", "press down", "push down on", "tap on")
+VERBS_IT = ("press", "push", "hit", "tap", "push down on", "tap on")  # before "it"
+
+
+def _button(name: str, rng: np.random.Generator, first: bool = True) -> str:
+    """One button, as people name it: "the navy button", "the navy one" (after the first), "the navy", "navy"."""
+    return pick(rng, ("the {} button", "the {} button", "the {}", "{}") + (() if first else ("the {} one",))).format(name)
+
+
+def _frames(colours: tuple[str, ...]) -> Frames:
+    """The sentence frames of one variation: ``name`` gives a colour's name in this sentence."""
+    head, rest = colours[0], colours[1:]
+
+    def buttons(name, rng):
+        return [_button(name(head), rng)] + [_button(name(c), rng, first=False) for c in rest]
+
+    if not rest:
+        return Frames([
+            lambda name, rng: f"{pick(rng, VERBS)} {_button(name(head), rng)}",
+            lambda name, rng: f"{pick(rng, ('just', 'only'))} {pick(rng, VERBS)} {_button(name(head), rng)}",
+            lambda name, rng: f"{pick(rng, ('find', 'go to'))} the {name(head)} button and {pick(rng, VERBS_IT)} it",
+            lambda name, rng: f"{pick(rng, VERBS)} the button that is {name(head)}",
+        ])
+    return Frames([
+        lambda name, rng: f"{pick(rng, VERBS)} " + ", then ".join(buttons(name, rng)),
+        lambda name, rng: f"{pick(rng, VERBS)} " + " and then ".join(buttons(name, rng)),
+        lambda name, rng: ", then ".join(f"{pick(rng, VERBS)} {b}" for b in buttons(name, rng)),
+        lambda name, rng: (lambda b: f"first {pick(rng, VERBS)} {b[0]}, " + "".join(f"next {x}, " for x in b[1:-1])
+                           + f"and finally {b[-1]}")(buttons(name, rng)),
+        lambda name, rng: f"{pick(rng, VERBS)} the {listed([name(c) for c in colours])} buttons "
+                          + pick(rng, ("in that order", "in this order", "in that exact order", "one after the other")),
+        lambda name, rng: (lambda b: f"start with {b[0]}, " + "".join(f"continue with {x}, " for x in b[1:-1])
+                           + f"and finish with {b[-1]}")(buttons(name, rng)),
+        lambda name, rng: (lambda b: f"{pick(rng, VERBS)} {b[0]} first, " + "".join(f"then {x}, " for x in b[1:-1])
+                           + f"and {b[-1]} last")(buttons(name, rng)),
+        lambda name, rng: (lambda b: f"{pick(rng, VERBS)} {b[0]} before {b[1]}"
+                           + (f", and {b[2]} after that" if len(b) > 2 else ""))(buttons(name, rng)),
+        lambda name, rng: (lambda b: f"{pick(rng, VERBS)} {b[0]}. " + ". ".join(
+            f"{pick(rng, ('then', 'next', 'after that'))} {pick(rng, VERBS)} {x}" for x in b[1:]))(buttons(name, rng)),
+        lambda name, rng: (lambda b: f"{pick(rng, VERBS)} {b[0]}, " + ", ".join(f"after that {x}" for x in b[1:]))(
+            buttons(name, rng)),
+        lambda name, rng: ", then ".join(f"go to the {name(c)} button and {pick(rng, VERBS_IT)} it" for c in colours),
+    ])
+
+
+# Phrasings no training source holds (`test_unseen_paraphrased`), written for this split: their words and shapes
+# are none of the templates' or the grammar's (grammar.HELD_OUT_MARKERS).
+HELD_OUT = {
+    1: ("Only the {0} button needs to go down.", "Activate the {0} button, nothing more.",
+        "The {0} one is the only button that matters here."),
+    2: ("The {0} button comes first and the {1} one second.", "Activate {0}, followed by {1}.",
+        "Depress the {0} button, and afterwards the {1} one.", "{0} and {1}, in sequence, each pressed once."),
+    3: ("The {0} button comes first, the {1} one second and the {2} one third.",
+        "Activate {0}, followed by {1}, followed by {2}.",
+        "Depress the {0} button, afterwards the {1} one, and lastly the {2} one.",
+        "{0}, {1}, {2}: in sequence, each pressed once.",
+        "Wrap up with {2}, once {0} and then {1} have gone down."),
+}
+
+
 class PushButtons(Task):
     name = "push_buttons"
     description = "Push 1-3 of three coloured buttons in the instructed order."
@@ -64,6 +126,14 @@ class PushButtons(Task):
         else:
             texts.append(f"press down the {first} button")
         return texts
+
+    def paraphrases(self, variation: Variation) -> list[str]:
+        return phrasings(self.name, variation.words, _frames(variation.words), PARAPHRASES,
+                         first=self.synthetic_instructions(variation))
+
+    def held_out_phrasings(self, variation: Variation) -> list[str]:
+        return [text[0].upper() + text[1:] for text in
+                (frame.format(*variation.words) for frame in HELD_OUT[len(variation.words)])]
 
     def instruction_relabels(self, variation: Variation, scene: dict) -> list[tuple[Variation, int]]:
         """Every other order of 1-3 of the scene's buttons that starts as the instructed one: its expert

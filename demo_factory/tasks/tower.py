@@ -7,6 +7,7 @@ from scipy.spatial.transform import Rotation
 
 from demo_factory.tasks import motions
 from demo_factory.tasks.base import Failure, KeyframeTarget, Task, spread_positions
+from demo_factory.tasks.grammar import Frames, listed, phrasings, pick
 from demo_factory.tasks.objects import free_of_robot, held
 from demo_factory.tasks.palette import TOWER_COLOURS, rgba
 from demo_factory.tasks.variations import PaperNumbering, Variation
@@ -37,6 +38,65 @@ SWITCH_KEYFRAME = False
 KEYFRAMES_PER_CUBE = 8 if SWITCH_KEYFRAME else 6  # grasp and place, 4 or 3 each
 
 
+PARAPHRASES = 40  # sentences a variation for training (``Task.paraphrases``), the templates among them
+VERBS = ("put", "place", "set", "stack", "move")
+NOUNS = ("cube", "block")
+TARGETS = ("the target", "the grey square", "the target spot", "the grey target")
+
+
+def _frames(colours: tuple[str, ...]) -> Frames:
+    """The sentence frames of one variation: ``name`` gives a colour's name in this sentence."""
+    head, rest = colours[0], colours[1:]
+    if not rest:
+        return Frames([
+            lambda name, rng: f"{pick(rng, VERBS)} the {name(head)} {pick(rng, NOUNS)} on {pick(rng, TARGETS)}",
+            lambda name, rng: f"pick up the {name(head)} {pick(rng, NOUNS)} and {pick(rng, VERBS)} it on "
+                              f"{pick(rng, TARGETS)}",
+            lambda name, rng: f"{pick(rng, ('put', 'place', 'move'))} the {name(head)} {pick(rng, NOUNS)} onto "
+                              f"{pick(rng, TARGETS)}",
+            lambda name, rng: f"grab the {name(head)} {pick(rng, NOUNS)} and put it down on {pick(rng, TARGETS)}",
+            lambda name, rng: f"take the {name(head)} {pick(rng, NOUNS)} to {pick(rng, TARGETS)}",
+        ])
+
+    def cubes(name, rng):
+        noun = pick(rng, NOUNS)
+        return noun, [f"the {name(c)} {noun}" for c in colours]
+
+    return Frames([
+        lambda name, rng: (lambda n, c: f"stack {c[0]} on {pick(rng, TARGETS)}"
+                           + "".join(f", then {x} on top" for x in c[1:]))(*cubes(name, rng)),
+        lambda name, rng: f"build a tower of the {listed([name(c) for c in colours])} {pick(rng, NOUNS)}s on "
+                          f"{pick(rng, TARGETS)}, from the bottom up",
+        lambda name, rng: (lambda n, c: f"{pick(rng, VERBS)} {c[0]} on {pick(rng, TARGETS)}"
+                           + "".join(f" and then {pick(rng, VERBS)} {x} on it" for x in c[1:]))(*cubes(name, rng)),
+        lambda name, rng: (lambda n, c: f"start with {c[0]} as a base, " + "".join(
+            f"then {pick(rng, VERBS)} {x} on top of it, " for x in c[1:-1]) + f"and finish with {c[-1]} on top")(
+            *cubes(name, rng)),
+        lambda name, rng: (lambda n, c: f"{pick(rng, VERBS)} {c[0]} on {pick(rng, TARGETS)}. " + ". ".join(
+            f"then {pick(rng, VERBS)} {x} on top of {y}" for y, x in zip(c, c[1:])))(*cubes(name, rng)),
+        lambda name, rng: (lambda n, c: f"first {pick(rng, VERBS)} {c[0]} down, " + ", ".join(
+            f"then the {name(x)} one on top of {'it' if i == 0 else 'that'}" for i, x in enumerate(rest)))(
+            *cubes(name, rng)),
+        lambda name, rng: (lambda n, c: f"put {c[0]} at the bottom, " + ", ".join(f"{x} on it" for x in c[1:-1])
+                           + (" and " if len(c) > 2 else "") + f"{c[-1]} on top")(*cubes(name, rng)),
+        lambda name, rng: (lambda n, c: f"{pick(rng, VERBS)} {c[0]} on {pick(rng, TARGETS)}, then stack {c[1]} on top "
+                           f"of it" + (f", and finally {c[2]}" if len(c) > 2 else ""))(*cubes(name, rng)),
+    ])
+
+
+# Phrasings no training source holds (`test_unseen_paraphrased`), written for this split: their words and shapes
+# are none of the templates' or the grammar's (grammar.HELD_OUT_MARKERS).
+HELD_OUT = {
+    1: ("Lay the {0} cube down on the target, nothing more.", "The {0} block alone sits on the target."),
+    2: ("Lay the {0} cube down on the target and rest the {1} one on it.",
+        "The {0} block sits on the target and the {1} block crowns it.",
+        "From the ground up: {0}, then {1}."),
+    3: ("The {0} block sits on the target, the {1} one in the middle, and the {2} one crowns it.",
+        "Lay the {0} cube down on the target, rest the {1} one on it and crown it all with the {2} one.",
+        "From the ground up: {0}, {1}, {2}."),
+}
+
+
 class Tower(Task):
     name = "tower"
     description = "Stack 1-3 instructed coloured cubes in order on the target spot; other cubes are distractors."
@@ -61,6 +121,13 @@ class Tower(Task):
             "build a tower of the " + ", ".join(c[:-1]) + f" and {c[-1]} cubes, from the bottom up, on the target",
             f"place the {c[0]} block on the grey square" + "".join(f" and then put the {x} block on it" for x in c[1:]),
         ]
+
+    def paraphrases(self, variation: Variation) -> list[str]:
+        return phrasings(self.name, variation.words, _frames(variation.words), PARAPHRASES,
+                         first=self.synthetic_instructions(variation))
+
+    def held_out_phrasings(self, variation: Variation) -> list[str]:
+        return [frame.format(*variation.words) for frame in HELD_OUT[len(variation.words)]]
 
     # -- scene ----------------------------------------------------------------------------
     def build_scene(self, world, variation: Variation, rng: np.random.Generator) -> None:

@@ -50,7 +50,7 @@ from demo_factory.convert.converter import read_dataset_provenance
 from demo_factory.convert.usage import MULTI_TASK_RECIPE, MULTI_TASK_STEPS, act_chunk, act_train_args, policy_flags
 from demo_factory.instructions import shipped_human_instructions
 from demo_factory.suites import SUITES
-from demo_factory.tasks import get_task
+from demo_factory.tasks import TASKS, get_task
 
 BIN = Path(sys.executable).parent
 # Seen variations, one of each length: 205 (maroon) is past the paper's 0-199 (its train ids have no
@@ -330,8 +330,10 @@ def parse_arguments(argv=None) -> argparse.Namespace:
                         "outputs/reference_tower, outputs/reference_act)")
     parser.add_argument("--task", choices=sorted(TASK_VARIATIONS), default="push_buttons",
                         help="push_buttons (default) or tower (HiveFormer only)")
-    parser.add_argument("--suite", choices=sorted(SUITES), help="one multi-task HiveFormer over a suite's tasks, one "
-                        "variation a task (its first train variation), as the paper's Table 1 (`make reference-suite`: "
+    parser.add_argument("--suite", choices=[*sorted(SUITES), *sorted(TASKS)], metavar="SUITE_OR_TASK",
+                        help="one multi-task HiveFormer over a suite's tasks, one variation a task (its first train "
+                        "variation), as the paper's Table 1 (a task name: that task alone, the paper's single-task "
+                        "rows; `make reference-suite`: "
                         f"ten_tasks); {SUITE['episodes_per_variation']} episodes a task, {SUITE['steps']} steps, "
                         f"{SUITE['curve']} checkpoints validated on {SUITE['validation_episodes']} scenes a task, the best "
                         f"evaluated on {SUITE['eval_episodes']} new scenes a task; results in Table 1's layout")
@@ -427,7 +429,8 @@ def parse_arguments(argv=None) -> argparse.Namespace:
     args.variations = args.variation or list(PRESETS[args.policy]["variations"] if args.policy != "hiveformer"
                                              else TASK_VARIATIONS[args.task])
     if args.suite:  # each task's first train variation, the paper's one variation a task
-        args.variations = {task: str(get_task(task).split_variations("train")[0].id) for task in SUITES[args.suite]}
+        args.variations = {task: str(get_task(task).split_variations("train")[0].id)
+                           for task in SUITES.get(args.suite, (args.suite,))}
     if args.unseen and not args.variation:
         paper_train_ids = [str(v.id) for v in get_task("push_buttons").split_variations("train")]  # 0-99
         args.variations = paper_train_ids[:args.train_variations]
