@@ -231,9 +231,9 @@ def render_card(result: ConvertResult, template: Path = TEMPLATE) -> str:
         task_text = (f"{task.description} The HiveFormer paper's task {_categories(task)}. "
                      f"Palette ({len(task.palette)} colours): {', '.join(task.palette)}. "
                      f"Synthetic instruction templates, e.g. for {', '.join(v.words)}: {example}.")
-        phrasings = task.paraphrases(v)
-        if len(phrasings) > len(task.synthetic_instructions(v)):
-            drawn = "; ".join(f'"{t}"' for t in phrasings[len(task.synthetic_instructions(v)):][:6])
+        phrasings, templates = task.paraphrases(v), task.synthetic_instructions(v)
+        if len(phrasings) > len(templates):
+            drawn = "; ".join(f'"{t}"' for t in phrasings[len(templates):][:6])
             task_text += (f" Training may draw among {len(phrasings)} phrasings of each variation's instruction "
                           f"(`meta/task_paraphrases.json`, from the task's grammar: other verbs, ways to say the "
                           f"order, colour names, politeness, typos), e.g. {drawn}.")

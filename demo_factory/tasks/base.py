@@ -165,13 +165,12 @@ class Task(ABC):
 
     def instruction(self, variation: Variation, episode_seed: int) -> str:
         """The synthetic instruction of one episode: a template chosen from the episode seed."""
-        options = self.synthetic_instructions(variation)
-        return options[np.random.default_rng([episode_seed, 7]).integers(len(options))]
+        return _drawn(self.synthetic_instructions(variation), episode_seed, 7)
 
     def paraphrases(self, variation: Variation) -> list[str]:
         """Every phrasing of the variation's instruction that training may draw (the templates first): what a
         dataset lists in ``meta/task_paraphrases.json``. By default the templates; a task with a grammar
-        (``demo_factory.instructions.grammar``) gives tens."""
+        (``demo_factory.tasks.grammar``) gives tens."""
         return self.synthetic_instructions(variation)
 
     def held_out_phrasings(self, variation: Variation) -> list[str]:
@@ -182,7 +181,7 @@ class Task(ABC):
     def held_out_instruction(self, variation: Variation, episode_seed: int) -> str | None:
         """The held-out phrasing of one test episode, chosen from the episode seed; None without any."""
         options = self.held_out_phrasings(variation)
-        return options[np.random.default_rng([episode_seed, 11]).integers(len(options))] if options else None
+        return _drawn(options, episode_seed, 11) if options else None
 
     def instruction_relabels(self, variation: Variation, scene: dict) -> list[tuple[Variation, int]]:
         """Other variations whose expert, in the same scene, would start exactly as this episode's did:
@@ -292,3 +291,8 @@ def spread_positions(rng: np.random.Generator, n: int, workspace, min_spacing: f
         points = [np.array([rng.uniform(x0, x1), rng.uniform(y0, y1)]) for _ in range(n)]
         if all(np.linalg.norm(a - b) >= min_spacing for i, a in enumerate(points) for b in points[i + 1:]):
             return points
+
+
+def _drawn(options: list[str], episode_seed: int, stream: int) -> str:
+    """One of ``options``, drawn from the episode seed (``stream`` keeps different draws of one seed apart)."""
+    return options[np.random.default_rng([episode_seed, stream]).integers(len(options))]

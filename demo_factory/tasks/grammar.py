@@ -19,7 +19,6 @@ from __future__ import annotations
 import re
 import zlib
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
 
 import numpy as np
 
@@ -52,12 +51,9 @@ TYPO_SHARE = 0.1
 CAPITALISED_SHARE = 0.5
 
 
-@dataclass(frozen=True)
-class Frames:
-    """A task's sentence frames for one variation: each takes a colour renderer (palette colour → the name this
-    sentence uses) and an rng, and returns a sentence."""
-
-    frames: Sequence[Callable[[Callable[[str], str], np.random.Generator], str]]
+# A task's sentence frames for one variation: each takes a colour renderer (palette colour → the name this sentence
+# uses) and an rng, and returns a sentence.
+Frames = Sequence[Callable[[Callable[[str], str], np.random.Generator], str]]
 
 
 def pick(rng: np.random.Generator, options: Sequence[str]) -> str:
@@ -95,7 +91,7 @@ def phrasings(task: str, words: Sequence[str], frames: Frames, count: int, first
             break
         names = {c: pick(rng, COLOUR_NAMES[c]) if c in COLOUR_NAMES and rng.random() < SYNONYM_SHARE else c
                  for c in words}
-        sentence = frames.frames[int(rng.integers(len(frames.frames)))](names.__getitem__, rng)
+        sentence = frames[int(rng.integers(len(frames)))](names.__getitem__, rng)
         if rng.random() < POLITE_SHARE:
             sentence = pick(rng, PREFIXES) + sentence if rng.random() < 0.7 else sentence + pick(rng, SUFFIXES)
         if rng.random() < TYPO_SHARE:

@@ -61,13 +61,13 @@ def _frames(colours: tuple[str, ...]) -> Frames:
         return [_button(name(head), rng)] + [_button(name(c), rng, first=False) for c in rest]
 
     if not rest:
-        return Frames([
+        return [
             lambda name, rng: f"{pick(rng, VERBS)} {_button(name(head), rng)}",
             lambda name, rng: f"{pick(rng, ('just', 'only'))} {pick(rng, VERBS)} {_button(name(head), rng)}",
             lambda name, rng: f"{pick(rng, ('find', 'go to'))} the {name(head)} button and {pick(rng, VERBS_IT)} it",
             lambda name, rng: f"{pick(rng, VERBS)} the button that is {name(head)}",
-        ])
-    return Frames([
+        ]
+    return [
         lambda name, rng: f"{pick(rng, VERBS)} " + ", then ".join(buttons(name, rng)),
         lambda name, rng: f"{pick(rng, VERBS)} " + " and then ".join(buttons(name, rng)),
         lambda name, rng: ", then ".join(f"{pick(rng, VERBS)} {b}" for b in buttons(name, rng)),
@@ -86,7 +86,7 @@ def _frames(colours: tuple[str, ...]) -> Frames:
         lambda name, rng: (lambda b: f"{pick(rng, VERBS)} {b[0]}, " + ", ".join(f"after that {x}" for x in b[1:]))(
             buttons(name, rng)),
         lambda name, rng: ", then ".join(f"go to the {name(c)} button and {pick(rng, VERBS_IT)} it" for c in colours),
-    ])
+    ]
 
 
 # Phrasings no training source holds (`test_unseen_paraphrased`), written for this split: their words and shapes

@@ -48,7 +48,7 @@ def _frames(colours: tuple[str, ...]) -> Frames:
     """The sentence frames of one variation: ``name`` gives a colour's name in this sentence."""
     head, rest = colours[0], colours[1:]
     if not rest:
-        return Frames([
+        return [
             lambda name, rng: f"{pick(rng, VERBS)} the {name(head)} {pick(rng, NOUNS)} on {pick(rng, TARGETS)}",
             lambda name, rng: f"pick up the {name(head)} {pick(rng, NOUNS)} and {pick(rng, VERBS)} it on "
                               f"{pick(rng, TARGETS)}",
@@ -56,13 +56,13 @@ def _frames(colours: tuple[str, ...]) -> Frames:
                               f"{pick(rng, TARGETS)}",
             lambda name, rng: f"grab the {name(head)} {pick(rng, NOUNS)} and put it down on {pick(rng, TARGETS)}",
             lambda name, rng: f"take the {name(head)} {pick(rng, NOUNS)} to {pick(rng, TARGETS)}",
-        ])
+        ]
 
     def cubes(name, rng):
         noun = pick(rng, NOUNS)
         return noun, [f"the {name(c)} {noun}" for c in colours]
 
-    return Frames([
+    return [
         lambda name, rng: (lambda n, c: f"stack {c[0]} on {pick(rng, TARGETS)}"
                            + "".join(f", then {x} on top" for x in c[1:]))(*cubes(name, rng)),
         lambda name, rng: f"build a tower of the {listed([name(c) for c in colours])} {pick(rng, NOUNS)}s on "
@@ -81,7 +81,7 @@ def _frames(colours: tuple[str, ...]) -> Frames:
                            + (" and " if len(c) > 2 else "") + f"{c[-1]} on top")(*cubes(name, rng)),
         lambda name, rng: (lambda n, c: f"{pick(rng, VERBS)} {c[0]} on {pick(rng, TARGETS)}, then stack {c[1]} on top "
                            f"of it" + (f", and finally {c[2]}" if len(c) > 2 else ""))(*cubes(name, rng)),
-    ])
+    ]
 
 
 # Phrasings no training source holds (`test_unseen_paraphrased`), written for this split: their words and shapes
