@@ -25,6 +25,7 @@ from huggingface_hub.utils import filter_repo_objects
 from huggingface_hub.utils.sha import git_hash
 
 from demo_factory.cli_common import run_command
+from demo_factory.convert import DATASET_SPLITS
 from demo_factory.publish.cli import add_parser
 
 TOKEN = "hf_TestTokenThatMustNeverAppear0123456789"
@@ -211,7 +212,7 @@ def test_rerun_after_publishing_sends_nothing(hub, converted_push_buttons):
 
 def test_upload_failure_midway_is_reported_and_a_rerun_finishes_only_the_missing_part(hub, converted_push_buttons, capsys):
     splits = split_names(converted_push_buttons)
-    order = [s for s in ("train", "val", "test_unseen_synthetic", "test_unseen_corrupted", "test_unseen_human") if s in splits]
+    order = [s for s in DATASET_SPLITS if s in splits]  # the order publish goes through them
     broken = f"me/pb_{order[1]}"
     hub.fail_upload.add(broken)
     assert publish("--dataset", converted_push_buttons, "--repo-id", "me/pb") == 1
