@@ -1,4 +1,10 @@
-"""``demo-factory collect-instructions``: serve the instruction-collection page until Ctrl+C."""
+"""demo-factory collect-instructions: serve the instruction-collection page until Ctrl+C.
+
+Serve a small web page that shows each unseen (test) variation of a task as pictures - the scene with the goal
+order marked - and appends the instructions people type to a JSONL file in the format `convert --human-
+instructions` reads. Several people can write at once; re-running the same command resumes with the file's
+rows.
+"""
 
 from __future__ import annotations
 
@@ -29,12 +35,8 @@ def port_number(text: str) -> int:
 def add_parser(subparsers) -> argparse.ArgumentParser:
     """Register ``collect-instructions`` on the ``demo-factory`` sub-command parsers."""
     parser = subparsers.add_parser(
-        "collect-instructions", help="serve a local web page where people write instructions for test variations",
-        description="Serve a small web page that shows each unseen (test) variation of a task as pictures - the "
-                    "scene with the goal order marked - and appends the instructions people type to a JSONL "
-                    "file in the format `convert --human-instructions` reads. Several people can write at "
-                    "once; re-running the same command resumes with the file's rows.",
-    )
+        "collect-instructions", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter,
+        help="serve a local web page where people write instructions for test variations")
     parser.add_argument("--task", required=True, choices=MULTI_VARIATION_TASKS, help="task name (see `demo-factory tasks`)")
     parser.add_argument("--split", default="test", choices=SPLITS,
                         help="variation split; human instructions are for test variations only (default: test)")

@@ -1,4 +1,9 @@
-"""``demo-factory convert``: MCAP recordings → LeRobot datasets, one per split, with a card."""
+"""demo-factory convert: MCAP recordings → LeRobot datasets, one per split, with a card.
+
+Writes OUT/{train,val,test_unseen_synthetic,test_unseen_corrupted,test_unseen_paraphrased,test_unseen_human}/,
+each a LeRobot v3.0 dataset with repo id REPO_ID_<split>, plus OUT/README.md (the dataset card). Splits
+without episodes are skipped.
+"""
 
 from __future__ import annotations
 
@@ -15,14 +20,8 @@ from demo_factory.convert.usage import act_chunk, gate_command, load_command, qu
 def add_parser(subparsers) -> argparse.ArgumentParser:
     """Register the ``convert`` sub-command on an argparse ``subparsers`` object."""
     parser = subparsers.add_parser(
-        "convert",
-        help="convert MCAP episode recordings to LeRobot v3.0 datasets (one per split) with a dataset card",
-        description=(
-            "Writes OUT/{train,val,test_unseen_synthetic,test_unseen_corrupted,test_unseen_paraphrased,"
-            "test_unseen_human}/, each a LeRobot v3.0 dataset with repo id REPO_ID_<split>, plus OUT/README.md (the "
-            "dataset card). Splits without episodes are skipped."
-        ),
-    )
+        "convert", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter,
+        help="convert MCAP episode recordings to LeRobot v3.0 datasets (one per split) with a dataset card")
     parser.add_argument("--in", dest="inputs", type=Path, nargs="+", required=True, metavar="PATH",
                         help="folders of .mcap recordings (searched recursively) or .mcap files")
     parser.add_argument("--out", type=Path, required=True, help="output folder (must not exist unless --overwrite)")

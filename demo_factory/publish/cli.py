@@ -1,4 +1,11 @@
-"""``demo-factory publish``: push every split of a converted dataset to the Hugging Face Hub with its card."""
+"""demo-factory publish: push every split of a converted dataset to the Hugging Face Hub with its card.
+
+Pushes each split folder of a converted dataset (demo-factory convert) to the Hugging Face Hub dataset repo
+REPO_ID_<split> in LeRobot's standard layout, tagged v3.0 so that LeRobotDataset('REPO_ID_<split>') and
+lerobot-train --dataset.repo_id=REPO_ID_<split> load it, with the dataset card (cross-linking the other
+splits) and its contact sheet. Credentials: `huggingface-cli login` or HF_TOKEN. Re-running the same command
+resumes: only files that are missing or different on the Hub are uploaded.
+"""
 
 from __future__ import annotations
 
@@ -13,17 +20,8 @@ HUB_URL = "https://huggingface.co/datasets/"
 def add_parser(subparsers) -> argparse.ArgumentParser:
     """Register the ``publish`` sub-command on an argparse ``subparsers`` object."""
     parser = subparsers.add_parser(
-        "publish",
-        help="publish a converted dataset to the Hugging Face Hub (one dataset repo per split, with its card)",
-        description=(
-            "Pushes each split folder of a converted dataset (demo-factory convert) to the Hugging Face Hub "
-            "dataset repo REPO_ID_<split> in LeRobot's standard layout, tagged v3.0 so that "
-            "LeRobotDataset('REPO_ID_<split>') and lerobot-train --dataset.repo_id=REPO_ID_<split> load it, with "
-            "the dataset card (cross-linking the other splits) and its contact sheet. Credentials: "
-            "`huggingface-cli login` or HF_TOKEN. Re-running the same command resumes: only files that are "
-            "missing or different on the Hub are uploaded."
-        ),
-    )
+        "publish", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter,
+        help="publish a converted dataset to the Hugging Face Hub (one dataset repo per split, with its card)")
     parser.add_argument("--dataset", type=Path, required=True,
                         help="the output folder of demo-factory convert (one folder per split, README.md)")
     parser.add_argument("--repo-id", required=True, help="owner/name on the Hub; split s goes to owner/name_s")
