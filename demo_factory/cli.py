@@ -74,6 +74,7 @@ def generate_suite(args) -> int:
     check_output_folder(out, lambda name: name in tasks or name in REPORT_FILES)
     for task in tasks:
         check_output_folder(out / task, is_generation_file)
+        perturb_probabilities(argparse.Namespace(**{**vars(args), "task": task}))  # every task accepts --perturb
     codes = []
     for task in tasks:
         job = argparse.Namespace(**{**vars(args), "task": task, "out": str(out / task),
@@ -127,12 +128,25 @@ def generation_job(args) -> GenerationJob:
     episodes = args.episodes_per_variation * len(named) if args.episodes_per_variation else args.episodes
     job = GenerationJob(task=args.task, split=split, episodes=episodes, out=Path(args.out), seed=args.seed,
                         variations=named, image_size=tuple(args.image_size), dense_fps=args.dense_fps,
-                        workers=args.workers, shard=args.shard, executor=args.executor, address=args.address)
+                        workers=args.workers, shard=args.shard, executor=args.executor, address=args.address,
+                        perturb=perturb_probabilities(args))
     job.command = job.command_line([f"--variation={v}" for v in args.variation or []]
                                    + (["--variations-from", args.variations_from] if args.variations_from else [])
                                    + (["--episodes-per-variation", str(args.episodes_per_variation)]
                                       if args.episodes_per_variation else []))
     return job
+
+
+def perturb_probabilities(args) -> dict[str, float]:
+    """``--perturb`` for the job's task: {factor: probability}."""
+    if not args.perturb:
+        return {}
+    from demo_factory.rollout.perturbations import parse_perturb_option
+
+    try:
+        return parse_perturb_option(args.perturb, get_task(args.task))
+    except ValueError as exc:
+        raise UsageError(f"--perturb: {exc}") from None
 
 
 def named_variations(args) -> list:
@@ -217,6 +231,10 @@ def build_parser() -> argparse.ArgumentParser:
                      help="also record dense frames at this rate between keyframes (default: 0 = keyframes only)")
     gen.add_argument("--workers", type=positive_int, default=os.cpu_count() or 1,
                      help="parallel processes; files are identical for any number (default: the number of cores)")
+    gen.add_argument("--perturb", metavar="NAME[=P],...",
+                     help="domain randomisation: each episode gets each named perturbation with probability P "
+                          "(default 0.5), drawn from its seed and recorded in its metadata; `all` names every one "
+                          "that applies to the task (docs/robustness.md lists them)")
     gen.add_argument("--shard", type=shard, help="run only shard i/N of the job (the shards' union is the job)")
     gen.add_argument("--executor", choices=EXECUTORS, default="process",
                      help="process: --workers local processes (default); ray: the same episodes on a Ray cluster "

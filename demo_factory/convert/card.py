@@ -91,6 +91,11 @@ def _stats(sources: list[SourceEpisode], invalid: int, generation: list[dict]) -
     if not generation:
         lines.append("- expert success rate: no `generation_summary_*.json` beside the recordings; every converted "
                      "recording passed its success check (the generator keeps only those)")
+    perturbed = Counter(name for s in sources for name in s.perturbations)
+    if perturbed:
+        lines.append("- perturbations (`generate --perturb`, docs/robustness.md): "
+                     + ", ".join(f"{name} in {count}" for name, count in perturbed.items())
+                     + f" of the {len(sources)} episodes; {sum(not s.perturbations for s in sources)} unperturbed")
     lines.append(f"- keyframes per episode: mean {statistics.mean(keyframes):.1f}, min {min(keyframes)}, max {max(keyframes)}")
     if attempts:
         lines.append(

@@ -166,6 +166,7 @@ def _source(episode: Episode, path: Path, granularity: str, stride: int = 1) -> 
         success=info.success,
         versions=tuple(sorted(info.versions.items())),
         relabels=_relabels(info),
+        perturbations=tuple(info.perturbations),
     )
 
 

@@ -58,6 +58,7 @@ class SourceEpisode:
     # Train recordings: (words, n) of other variations, none of the test split, whose expert starts with
     # this episode's first n keyframes (``Task.instruction_relabels``).
     relabels: tuple[tuple[tuple[str, ...], int], ...] = ()
+    perturbations: tuple[str, ...] = ()  # the factors applied to its scene (`generate --perturb`)
 
 
 @dataclass(frozen=True)

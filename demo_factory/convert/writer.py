@@ -102,6 +102,7 @@ def _provenance_row(planned: PlannedEpisode, index: int, frames: int, multi_task
         "instruction": planned.instruction,
         "frames": frames,
         **({"task": planned.source.task} if multi_task else {}),
+        **({"perturbations": list(planned.source.perturbations)} if planned.source.perturbations else {}),
         **({"human_instruction_line": row.line, "author": row.author, "language": row.language,
             **({"annotation_id": row.record_id} if row.record_id else {})} if row else {}),
     }

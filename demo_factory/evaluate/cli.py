@@ -1,4 +1,9 @@
-"""``demo-factory eval``: closed-loop success rates per split for a policy checkpoint or a reference.
+"""demo-factory eval: closed-loop success rates per split for a policy checkpoint or a reference.
+
+Roll a policy out in the tasks it was trained on. A keyframe policy's predicted keyframe is reached with the
+seeded OMPL planner, then the gripper is actuated; a dense policy (a dataset converted with --granularity
+dense) acts at every control tick through the joints' position controllers (inverse kinematics for ee
+actions). Writes results.json, results.md (paper layout), results.png and episodes.jsonl.
 
 Keyframe policies (HiveFormer) and dense policies (ACT, diffusion, …) alike: the action space comes
 from ``--dataset`` (how its splits were exported), else from ``--action-space``, else from the
@@ -11,7 +16,7 @@ import argparse
 import json
 import shutil
 import sys
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 from demo_factory.cli_common import UsageError, image_size, positive_int
@@ -31,13 +36,8 @@ class Control:
 
 def add_parser(commands) -> argparse.ArgumentParser:
     parser = commands.add_parser(
-        "eval", help="evaluate a policy closed-loop, per split",
-        description="Roll a policy out in the tasks it was trained on. A keyframe policy's predicted keyframe is "
-                    "reached with the seeded OMPL planner, then the gripper is actuated; a dense policy (a dataset "
-                    "converted with --granularity dense) acts at every control tick through the joints' position "
-                    "controllers (inverse kinematics for ee actions). Writes results.json, results.md (paper "
-                    "layout), results.png and episodes.jsonl.",
-    )
+        "eval", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter,
+        help="evaluate a policy closed-loop, per split")
     who = parser.add_mutually_exclusive_group(required=True)
     who.add_argument("--policy.path", dest="policy_path", help="a LeRobot checkpoint (…/pretrained_model)")
     who.add_argument("--expert", action="store_true", help="the scripted expert as a reference policy (scores 100%%)")
@@ -66,6 +66,10 @@ def add_parser(commands) -> argparse.ArgumentParser:
                         help="dense policies: simulated seconds before an episode counts as failed (default: 1.5x "
                              "the dataset's longest expert episode, else 60)")
     parser.add_argument("--device", default="cpu", help="torch device for the policy (default: cpu)")
+    parser.add_argument("--perturb", metavar="NAME,...",
+                        help="also evaluate every split under each named perturbation, one at a time, on the same "
+                             "scenes: a robustness table beside the unperturbed figures and a contact sheet per "
+                             "factor; `all`: every one that applies (docs/robustness.md)")
     parser.add_argument("--record", action="store_true", help="also record every rollout to MCAP under OUT/rollouts")
     parser.add_argument("--out", required=True, help="output folder")
     parser.add_argument("--overwrite", action="store_true", help="replace an existing output folder")
@@ -165,6 +169,21 @@ def _plan(args) -> tuple[str, dict[str, list], tuple[int, int], Control]:
     return task, plan, size, _control(args, export, f"--dataset {root}")
 
 
+def _factors(text: str | None, plan: dict[str, list]) -> tuple[str, ...]:
+    """``--perturb`` checked against every task evaluated (``all``: the factors every one of them accepts)."""
+    from demo_factory.rollout.perturbations import parse_perturbations
+    from demo_factory.tasks import get_task
+
+    if not text:
+        return ()
+    tasks = sorted({e.task for episodes in plan.values() for e in episodes})
+    try:
+        accepted = [parse_perturbations(text, get_task(t)) for t in tasks]
+    except ValueError as exc:
+        raise UsageError(f"--perturb: {exc}") from None
+    return tuple(f for f in accepted[0] if all(f in a for a in accepted)) if accepted else ()
+
+
 def run(args) -> int:
     from tqdm import tqdm
 
@@ -172,6 +191,7 @@ def run(args) -> int:
     from demo_factory.evaluate.policies import CurrentPosePolicy, ExpertPolicy, LeRobotPolicy
     from demo_factory.evaluate.runner import (
         PER_SENTENCE_SPLITS,
+        contact_sheets,
         evaluate_episode,
         per_sentence,
         summarise,
@@ -202,31 +222,42 @@ def run(args) -> int:
         shutil.rmtree(out)
     staging = out.with_name(f".{out.name}.partial")
     shutil.rmtree(staging, ignore_errors=True)
-    rows: dict[str, list[dict]] = {split: [] for split in plan}
+    factors = _factors(args.perturb, plan)
+    conditions = {"": plan} | {f: {s: [replace(e, perturbations=(f,)) for e in es] for s, es in plan.items()}
+                               for f in factors}
+    rows: dict[str, dict[str, list[dict]]] = {c: {split: [] for split in plan} for c in conditions}
     for each_task in sorted({e.task for episodes in plan.values() for e in episodes}):  # one scene at a time
         env = make_env(each_task, control.action_space, fps=control.fps, max_seconds=control.max_seconds,
                        step_slack=args.step_slack, image_size=size,
                        episodes=[e for episodes in plan.values() for e in episodes if e.task == each_task])
         try:
-            for split, episodes in plan.items():
-                mine: list[dict] = []  # this task's rows of the split
-                bar = tqdm([e for e in episodes if e.task == each_task], unit="episode", file=sys.stderr,
-                           desc=f"{policy.name} / {split}" + (f" / {each_task}" if each_task != task else ""))
-                for episode in bar:
-                    name = f"{split}_{len(rows[split]) + len(mine):04d}_{episode.task}_var{episode.variation_id:04d}.mcap"
-                    record_path = staging / "rollouts" / split / name if args.record else None
-                    mine.append(evaluate_episode(env, policy, episode, record_path))
-                    bar.set_postfix(success=f"{100 * sum(r['success'] for r in mine) / len(mine):.1f}%")
-                bar.close()
-                rows[split] += mine
+            for condition, condition_plan in conditions.items():
+                for split, episodes in condition_plan.items():
+                    mine: list[dict] = []  # this task's rows of the split
+                    done = rows[condition][split]
+                    bar = tqdm([e for e in episodes if e.task == each_task], unit="episode", file=sys.stderr,
+                               desc=f"{policy.name} / {split}" + (f" / {each_task}" if each_task != task else "")
+                               + (f" / {condition}" if condition else ""))
+                    for episode in bar:
+                        name = (f"{split}_{len(done) + len(mine):04d}_{episode.task}_var{episode.variation_id:04d}"
+                                + (f"_{condition}" if condition else "") + ".mcap")
+                        record_path = staging / "rollouts" / split / name if args.record else None
+                        mine.append(evaluate_episode(env, policy, episode, record_path))
+                        bar.set_postfix(success=f"{100 * sum(r['success'] for r in mine) / len(mine):.1f}%")
+                    bar.close()
+                    done += mine
         finally:
             env.close()
+    robustness = {f: {split: summarise(split_rows) for split, split_rows in rows[f].items()} for f in factors}
+    every_row, rows = rows, rows[""]
     results = {split: summarise(split_rows) for split, split_rows in rows.items()}
     for split in PER_SENTENCE_SPLITS:
         if rows.get(split):
             results[split]["per_sentence"] = per_sentence(rows[split])
-    records = [row for split_rows in rows.values() for row in split_rows]
-    write_results(staging, policy.name, task, results, asdict(control))
+    records = [row for condition in every_row.values() for split_rows in condition.values() for row in split_rows]
+    write_results(staging, policy.name, task, results, asdict(control), robustness)
+    if factors:
+        contact_sheets(staging, plan, factors, size)
     with open(staging / "episodes.jsonl", "w") as stream:
         for row in records:
             stream.write(json.dumps(row) + "\n")
@@ -246,5 +277,11 @@ def run(args) -> int:
             print(f"    {len(summary['per_sentence'])} sentences, {never} never followed (each in results.md)")
         if "task_average" in summary:
             print(f"    {'average over the tasks':<36} {100 * summary['task_average']:5.1f}%")
+    if robustness:
+        print("  under perturbation (success %, split by split):")
+        for factor, summaries in robustness.items():
+            figures = "  ".join(f"{split} {100 * summary['success_rate']:5.1f}" for split, summary in summaries.items())
+            print(f"    {factor:<22} {figures}")
+        print(f"  contact sheets: {out}/contact_<factor>.png")
     print(f"results: {out / 'results.md'}, {out / 'results.json'}, {out / 'results.png'}")
     return 0

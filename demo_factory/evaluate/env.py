@@ -25,7 +25,7 @@ could not be reached: "unreachable pose", "planning failed", "straight-line move
 from __future__ import annotations
 
 import zlib
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import gymnasium as gym
 import numpy as np
@@ -79,6 +79,7 @@ class EvalEpisode:
     variation_id: int
     instruction: str
     seed: int
+    perturbations: tuple[str, ...] = ()  # factors of `rollout.perturbations` applied to the scene
 
 
 def gym_observation(frame) -> dict:
@@ -98,7 +99,8 @@ def gym_observation(frame) -> dict:
 def episode_world(episode: EvalEpisode, image_size) -> tuple[World, object]:
     """The scene of an evaluation episode at rest, its clock at 0, as the generator builds it: (world, task)."""
     task = get_task(episode.task)
-    return start_scene(task, task.variation(episode.variation_id), episode.seed, DEFAULT_CAMERAS, image_size), task
+    return start_scene(task, task.variation(episode.variation_id), episode.seed, DEFAULT_CAMERAS, image_size,
+                       episode.perturbations), task
 
 
 class _TaskEnv(gym.Env):
@@ -127,6 +129,7 @@ class _TaskEnv(gym.Env):
         self.action_space = gym.spaces.Box(-np.inf, np.inf, (ACTION_SIZE,), np.float32)
         self.episode: EvalEpisode | None = None
         self.task_description = ""
+        self.perturb: tuple[str, ...] = ()  # perturbations for episodes that name none (`make_env`)
 
     def _start(self, seed, options) -> None:
         super().reset(seed=seed)
@@ -134,6 +137,8 @@ class _TaskEnv(gym.Env):
         if episode is None:
             episode = self._episodes[self._next % len(self._episodes)]
             self._next += 1
+        if self.perturb and not episode.perturbations:
+            episode = replace(episode, perturbations=self.perturb)
         self.episode = episode
         self.task_description = episode.instruction
         self._close_world()
@@ -280,14 +285,19 @@ class DenseEnv(_TaskEnv):
 
 
 def make_env(task: str, action_space: str = KEYFRAME, fps: float = DEFAULT_CONTROL_FPS,
-             max_seconds: float = DEFAULT_DENSE_SECONDS, step_slack: int = DEFAULT_STEP_SLACK, **common) -> _TaskEnv:
+             max_seconds: float = DEFAULT_DENSE_SECONDS, step_slack: int = DEFAULT_STEP_SLACK, perturb=(),
+             **common) -> _TaskEnv:
     """The environment for a policy's action space: ``keyframe`` → ``KeyframeEnv``, ``joints`` / ``ee`` →
-    ``DenseEnv`` (``common``: episodes, image_size, split, base_seed)."""
+    ``DenseEnv`` (``common``: episodes, image_size, split, base_seed); ``perturb``: factors of
+    `rollout.perturbations` for every episode that names none."""
     if action_space == KEYFRAME:
-        return KeyframeEnv(task, step_slack=step_slack, **common)
-    if action_space in ACTION_SPACES:
-        return DenseEnv(task, action_space=action_space, fps=fps, max_seconds=max_seconds, **common)
-    raise ValueError(f"unknown action space {action_space!r}; accepted: {', '.join(EVAL_ACTION_SPACES)}")
+        env = KeyframeEnv(task, step_slack=step_slack, **common)
+    elif action_space in ACTION_SPACES:
+        env = DenseEnv(task, action_space=action_space, fps=fps, max_seconds=max_seconds, **common)
+    else:
+        raise ValueError(f"unknown action space {action_space!r}; accepted: {', '.join(EVAL_ACTION_SPACES)}")
+    env.perturb = tuple(perturb)
+    return env
 
 
 def default_episodes(task: str, split: str, count: int, base_seed: int = 0) -> list[EvalEpisode]:

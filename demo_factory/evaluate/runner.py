@@ -12,6 +12,7 @@ import numpy as np
 from demo_factory.convert.converter import read_dataset_provenance
 from demo_factory.evaluate.env import KEYFRAME, EvalEpisode, KeyframeEnv, evaluation_seed
 from demo_factory.record import FORMAT_VERSION, EpisodeInfo, EpisodeWriter, Keyframe, library_versions
+from demo_factory.rollout.scene import start_views
 
 # The HiveFormer paper's success rates (%) for its multi-variation tasks, for the results table.
 PAPER_RESULTS = {
@@ -100,7 +101,7 @@ def _rollout_writer(env: KeyframeEnv, episode: EvalEpisode, path: Path) -> Episo
         variation=list(variation.words), episode_seed=episode.seed, instruction=episode.instruction,
         cameras=list(env.frame.cameras), image_size=env.image_size,
         dense_fps=float(getattr(env, "fps", 0.0)) if env.action_space_name != KEYFRAME else 0.0,
-        extra={"evaluation": True, **env.sim_task.scene_facts()},
+        extra={"evaluation": True, **env.sim_task.scene_facts()}, perturbations=env.world.perturbations,
     )
     writer = EpisodeWriter(path, info)
     writer.write_frame(env.frame)
@@ -169,11 +170,14 @@ def sentence_table(split: str, summary: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
-def write_results(out: Path, policy_name: str, task: str, results: dict[str, dict], control: dict | None = None) -> None:
+def write_results(out: Path, policy_name: str, task: str, results: dict[str, dict], control: dict | None = None,
+                  robustness: dict[str, dict[str, dict]] | None = None) -> None:
     """``results.json``, ``results.md`` (paper layout: rows = policy, columns = split) and a PNG chart;
-    ``control`` (how the policy acted: action space, rate, time limit) goes into ``results.json``."""
+    ``control`` (how the policy acted: action space, rate, time limit) goes into ``results.json``; ``robustness``
+    ({factor: {split: summary}}, ``eval --perturb``) into both, as a table beside the unperturbed figures."""
     out.mkdir(parents=True, exist_ok=True)
-    body = {"policy": policy_name, "task": task, **({"control": control} if control else {}), "splits": results}
+    body = {"policy": policy_name, "task": task, **({"control": control} if control else {}), "splits": results,
+            **({"perturbations": robustness} if robustness else {})}
     (out / "results.json").write_text(json.dumps(body, indent=2) + "\n")
     splits = list(results)
     header = "| policy | " + " | ".join(splits) + " |\n|---|" + "---|" * len(splits) + "\n"
@@ -189,8 +193,64 @@ def write_results(out: Path, policy_name: str, task: str, results: dict[str, dic
         "Paper figures: HiveFormer (CoRL 2022), Table 3 (seen = train variations).\n" + failure_table(results)
         + "".join(task_table(policy_name, task, split, summary) for split, summary in results.items())
         + "".join(sentence_table(split, summary) for split, summary in results.items())
+        + robustness_table(results, robustness or {})
     )
     _bar_chart(out / "results.png", policy_name, task, results)
+
+
+def robustness_table(results: dict[str, dict], robustness: dict[str, dict[str, dict]]) -> str:
+    """Success per split (rows) without and under each perturbation (columns), their average over the factors, and
+    the failures under each factor by reason; "" without perturbations."""
+    if not robustness:
+        return ""
+    factors = list(robustness)
+    lines = ["\n## Under perturbation: success (%)\n", "| split | none | " + " | ".join(factors) + " | perturbed average |",
+             "|---|---:|" + "---:|" * (len(factors) + 1)]
+    for split, summary in results.items():
+        rates = [100 * robustness[f][split]["success_rate"] for f in factors]
+        lines.append(f"| {split} | {100 * summary['success_rate']:.1f} | " + " | ".join(f"{r:.1f}" for r in rates)
+                     + f" | {np.mean(rates):.1f} |")
+    reasons = Counter()
+    for summaries in robustness.values():
+        for summary in summaries.values():
+            reasons.update(summary["failure_reasons"])
+    if reasons:
+        lines += ["\n## Under perturbation: failed episodes by reason (all splits)\n",
+                  "| factor | " + " | ".join(r for r, _ in reasons.most_common()) + " |", "|---|" + "---:|" * len(reasons)]
+        for factor, summaries in robustness.items():
+            counts = Counter()
+            for summary in summaries.values():
+                counts.update(summary["failure_reasons"])
+            lines.append(f"| {factor} | " + " | ".join(str(counts.get(r, 0)) for r, _ in reasons.most_common()) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def contact_sheets(out: Path, plan: dict[str, list[EvalEpisode]], factors, image_size) -> list[Path]:
+    """``contact_<factor>.png`` per factor: the first evaluated scene's start, every camera, without (top row)
+    and under the factor (bottom row), so a person sees what changed."""
+    episode = next(e for episodes in plan.values() for e in episodes)
+    return [contact_sheet(out / f"contact_{factor}.png", episode.task, episode.variation_id, episode.seed, factor,
+                          image_size) for factor in factors]
+
+
+def contact_sheet(path: Path, task_name: str, variation_id: int, seed: int, factor: str, image_size,
+                  scale_to: int = 192) -> Path:
+    """A PNG of one scene's start, every camera side by side: unperturbed on top, under ``factor`` below, each
+    row labelled; small images are enlarged (nearest pixel) to ``scale_to`` pixels high."""
+    import cv2
+
+    rows = []
+    for label, names in (("unperturbed", ()), (factor, (factor,))):
+        views = start_views(task_name, variation_id, seed, names, image_size)
+        scale = max(1, scale_to // image_size[0])
+        row = np.concatenate([np.kron(image, np.ones((scale, scale, 1), np.uint8)) for image in views.values()], 1)
+        banner = np.full((22, row.shape[1], 3), 255, np.uint8)
+        cv2.putText(banner, f"{label}   ({', '.join(views)})", (4, 16), cv2.FONT_HERSHEY_SIMPLEX, 0.45, (0, 0, 0), 1,
+                    cv2.LINE_AA)
+        rows += [banner, row]
+    path.parent.mkdir(parents=True, exist_ok=True)
+    cv2.imwrite(str(path), np.concatenate(rows, 0)[:, :, ::-1])
+    return path
 
 
 def failure_table(results: dict[str, dict]) -> str:

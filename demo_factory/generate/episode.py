@@ -32,6 +32,7 @@ class EpisodeRequest:
     episode_seed: int
     image_size: tuple[int, int] = (128, 128)
     dense_fps: float = 0.0
+    perturbations: tuple[str, ...] = ()  # the factors of `rollout.perturbations` this episode gets
 
     @property
     def filename(self) -> str:
@@ -66,7 +67,8 @@ def run_episode(request: EpisodeRequest, out_dir: str | Path | None) -> EpisodeO
     task = get_task(request.task)
     variation = task.variation(request.variation_id)
     instruction = task.instruction(variation, request.episode_seed)
-    world = start_scene(task, variation, request.episode_seed, DEFAULT_CAMERAS, request.image_size)
+    world = start_scene(task, variation, request.episode_seed, DEFAULT_CAMERAS, request.image_size,
+                        request.perturbations)
     kinematics = shared_kinematics()
     writer = None
     try:
@@ -74,7 +76,7 @@ def run_episode(request: EpisodeRequest, out_dir: str | Path | None) -> EpisodeO
             format_version=FORMAT_VERSION, task=task.name, split=request.split, variation_id=variation.id,
             variation=list(variation.words), episode_seed=request.episode_seed, instruction=instruction,
             cameras=[c.name for c in DEFAULT_CAMERAS], image_size=tuple(request.image_size),
-            dense_fps=float(request.dense_fps), extra=task.scene_facts(),
+            dense_fps=float(request.dense_fps), extra=task.scene_facts(), perturbations=world.perturbations,
         )
         if out_dir is not None:
             Path(out_dir).mkdir(parents=True, exist_ok=True)

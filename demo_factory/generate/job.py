@@ -20,19 +20,25 @@ import numpy as np
 from demo_factory.generate.episode import EpisodeOutcome, EpisodeRequest, episode_seed
 from demo_factory.generate.executors import run_requests
 from demo_factory.generate.folder import log_file, record_job, remove_stale_partials, summary_file
+from demo_factory.rollout.perturbations import drawn_perturbations, perturbation_option
 from demo_factory.tasks import Variation, get_task
 
 
-def job_requests(task: str, split: str, episodes: int, base_seed: int, variations=None, **settings) -> list[EpisodeRequest]:
+def job_requests(task: str, split: str, episodes: int, base_seed: int, variations=None, perturb=None,
+                 **settings) -> list[EpisodeRequest]:
     """The requests of a job: episode i uses variation i mod n and its own seed.
 
-    The variations are the split's (by default) or the ones named by the user.
+    The variations are the split's (by default) or the ones named by the user. ``perturb`` ({factor: probability})
+    gives each episode each factor with its probability, drawn from the episode's seed (domain randomisation).
     """
     variations = variations or get_task(task).split_variations(split)
-    return [
-        EpisodeRequest(task, split, variations[i % len(variations)].id, episode_seed(base_seed, task, split, i), **settings)
-        for i in range(episodes)
-    ]
+    requests = []
+    for i in range(episodes):
+        seed = episode_seed(base_seed, task, split, i)
+        factors = drawn_perturbations(perturb, seed) if perturb else ()
+        requests.append(EpisodeRequest(task, split, variations[i % len(variations)].id, seed,
+                                       perturbations=factors, **settings))
+    return requests
 
 
 def shard_requests(requests: list[EpisodeRequest], shard: tuple[int, int] | None) -> list[EpisodeRequest]:
@@ -59,6 +65,7 @@ class GenerationJob:
     shard: tuple[int, int] | None = None
     executor: str = "process"
     address: str | None = None  # the Ray cluster, with executor "ray"
+    perturb: dict[str, float] = field(default_factory=dict)  # {factor: probability an episode gets it}
     command: str = ""  # the command line that runs this job, for the summary (default: `command_line()`)
 
     def command_line(self, variation_options: list[str] | None = None) -> str:
@@ -71,19 +78,21 @@ class GenerationJob:
                         + variation_options
                         + (["--image-size", "x".join(map(str, self.image_size))]
                            if tuple(self.image_size) != (128, 128) else [])
-                        + (["--dense-fps", f"{self.dense_fps:g}"] if self.dense_fps else []))
+                        + (["--dense-fps", f"{self.dense_fps:g}"] if self.dense_fps else [])
+                        + (["--perturb", perturbation_option(self.perturb)] if self.perturb else []))
 
     def requests(self) -> list[EpisodeRequest]:
         """This shard's requests (the whole job's without a shard)."""
         requests = job_requests(self.task, self.split, self.episodes, self.seed, variations=self.variations or None,
-                                image_size=tuple(self.image_size), dense_fps=self.dense_fps)
+                                image_size=tuple(self.image_size), dense_fps=self.dense_fps, perturb=self.perturb)
         return shard_requests(requests, self.shard)
 
     def parameters(self) -> dict:
         """What identifies the job in its folder's manifest (shards share them)."""
         return {"task": self.task, "split": self.split, "episodes": self.episodes, "seed": self.seed,
                 "image_size": list(self.image_size), "dense_fps": self.dense_fps,
-                "variations": [v.id for v in self.variations] or None}
+                "variations": [v.id for v in self.variations] or None,
+                **({"perturb": self.perturb} if self.perturb else {})}
 
 
 def run_job(job: GenerationJob, on_outcome: Callable[[EpisodeOutcome], None] = lambda outcome: None) -> dict:

@@ -39,7 +39,8 @@ __all__ = ["FORMAT_VERSION", "OLDEST_READABLE_FORMAT", "CameraObservation", "Epi
 # press and approach keyframes lie 3 mm lower. Every task's straight-line moves run at 0.2 m/s (was
 # 0.12) with IK waypoints 1 cm apart (was 5 mm): the same keyframes, reached in fewer physics steps, so
 # keyframe times, the frames between keyframes (dense) and the last digits of poses differ.
-FORMAT_VERSION = 5
+# 6: the info carries the perturbations applied to the scene (`rollout.perturbations`), {} for none.
+FORMAT_VERSION = 6
 OLDEST_READABLE_FORMAT = 2
 
 
@@ -100,6 +101,7 @@ class EpisodeInfo:
     planner_attempts: list[PlannerAttempt] = field(default_factory=list)
     versions: dict[str, str] = field(default_factory=dict)
     extra: dict = field(default_factory=dict)  # task-specific scene facts (object colours, ...)
+    perturbations: dict = field(default_factory=dict)  # {name: the parameters drawn} (rollout.perturbations)
 
 
 @dataclass

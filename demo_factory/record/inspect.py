@@ -32,6 +32,7 @@ def describe(path: Path, episode: Episode) -> str:
         f"  success: {info.success}; {len(episode.keyframes)} keyframes, {len(episode.dense_frames())} dense frames "
         f"({info.dense_fps:g} fps), {duration:.2f} s simulated",
         f"  cameras: {', '.join(info.cameras)} at {info.image_size[0]}x{info.image_size[1]}",
+        *([f"  perturbations: {', '.join(info.perturbations)}"] if info.perturbations else []),
         f"  planner attempts: {len(info.planner_attempts)} over "
         f"{len({a.keyframe_index for a in info.planner_attempts})} planned transitions",
         f"  format version {info.format_version}; " + ", ".join(f"{k} {v}" for k, v in sorted(info.versions.items())),

@@ -70,14 +70,23 @@ def _world_eye_target_up(spec: CameraSpec, hand_pose) -> tuple[np.ndarray, np.nd
     return eye, target, up
 
 
-def render(client: int, spec: CameraSpec, size: tuple[int, int], hand_pose) -> CameraObservation:
-    """Render RGB, metric depth and segmentation, with the camera's calibration."""
+# The tiny renderer's own light when none is given (these reproduce its images exactly). Its light settings
+# persist from one getCameraImage call to the next in a process, so every render states all of them.
+DEFAULT_LIGHT = {"lightDirection": [-50.0, 30.0, 100.0], "lightColor": [1.0, 1.0, 1.0], "lightDistance": 2.0,
+                 "lightAmbientCoeff": 0.6, "lightDiffuseCoeff": 0.35, "lightSpecularCoeff": 0.05}
+
+
+def render(client: int, spec: CameraSpec, size: tuple[int, int], hand_pose,
+           light: dict | None = None) -> CameraObservation:
+    """Render RGB, metric depth and segmentation, with the camera's calibration; ``light``: changes to the light
+    (``DEFAULT_LIGHT``'s keys, those of PyBullet's ``getCameraImage``)."""
     height, width = size
     eye, target, up = _world_eye_target_up(spec, hand_pose)
     view = p.computeViewMatrix(eye.tolist(), target.tolist(), up.tolist(), physicsClientId=client)
     projection = p.computeProjectionMatrixFOV(spec.fov_deg, width / height, spec.near, spec.far, physicsClientId=client)
     _, _, rgba, depth_buffer, seg = p.getCameraImage(
         width, height, view, projection, renderer=p.ER_TINY_RENDERER, shadow=0, physicsClientId=client,
+        **(DEFAULT_LIGHT | (light or {})),
     )
     rgb = np.asarray(rgba, dtype=np.uint8).reshape(height, width, 4)[:, :, :3]
     depth_buffer = np.asarray(depth_buffer, dtype=np.float64).reshape(height, width)

@@ -85,6 +85,8 @@ class World:
         self.grasped: int | None = None  # body held between the fingers
         self.gripper_command = 1.0
         self.step_callbacks = []
+        self.light: dict = {}  # the renderer's light settings (PyBullet's getCameraImage keywords); {}: its default
+        self.perturbations: dict = {}  # what `rollout.perturbations` changed: {name: the parameters drawn}
         p.setGravity(0, 0, -9.81, physicsClientId=self.client)
         p.setTimeStep(TIME_STEP, physicsClientId=self.client)
         p.setPhysicsEngineParameter(deterministicOverlappingPairs=1, numSolverIterations=100, physicsClientId=self.client)
@@ -223,7 +225,7 @@ class World:
     def render_cameras(self):
         """Render every camera: ``{name: CameraObservation}``."""
         hand = self.link_pose(HAND_LINK)
-        return {spec.name: render(self.client, spec, self.image_size, hand) for spec in self.cameras}
+        return {spec.name: render(self.client, spec, self.image_size, hand, self.light) for spec in self.cameras}
 
     def fingertip_offset(self) -> float:
         """How far the lowest fingertip point lies below the grasp frame when pointing down over the table.

@@ -28,8 +28,9 @@ from lerobot.processor import PolicyProcessorPipeline
 
 from demo_factory.evaluate.env import DEFAULT_CONTROL_FPS, DEFAULT_DENSE_SECONDS, DEFAULT_STEP_SLACK, EVAL_ACTION_SPACES, control_period
 from demo_factory.evaluate.gym_layout import GymObservationLayoutStep
+from demo_factory.rollout.perturbations import parse_perturbations
 from demo_factory.sim import CAMERA_NAMES
-from demo_factory.tasks import TASKS
+from demo_factory.tasks import TASKS, get_task
 
 ENV_TYPE = "demo_factory"
 
@@ -79,6 +80,8 @@ class DemoFactoryEnv(EnvConfig):
     # `task`, as `demo-factory eval --dataset` draws them; a multi-task checkpoint is evaluated on the variations
     # it trained on. Empty: every variation of the task's split.
     dataset: str = ""
+    # Perturbations of every episode's scene, comma-separated (`demo_factory.rollout.perturbations`; "": none).
+    perturb: str = ""
     features: dict[str, PolicyFeature] = field(default_factory=lambda: _features(128, 128))
     features_map: dict[str, str] = field(default_factory=_features_map)
 
@@ -89,6 +92,7 @@ class DemoFactoryEnv(EnvConfig):
             raise ValueError(f"unknown action_space {self.action_space!r}; accepted: {', '.join(EVAL_ACTION_SPACES)}")
         control_period(self.fps)
         self.features = _features(self.image_height, self.image_width)
+        self._perturb = parse_perturbations(self.perturb, get_task(self.task))
         self._dataset_episodes = self.dataset_episodes()  # read once: gym_kwargs hands them to every env made
         if self.dataset and not self._dataset_episodes:
             raise ValueError(f"dataset {self.dataset!r} holds no {self.task} episode in its {self.split!r} split")
@@ -108,7 +112,7 @@ class DemoFactoryEnv(EnvConfig):
     def gym_kwargs(self) -> dict:
         return {"split": self.split, "image_size": (self.image_height, self.image_width),
                 "step_slack": self.step_slack, "base_seed": self.base_seed, "action_space": self.action_space,
-                "fps": self.fps, "max_seconds": self.max_seconds,
+                "fps": self.fps, "max_seconds": self.max_seconds, "perturb": self._perturb,
                 **({"episodes": self._dataset_episodes} if self.dataset else {})}
 
     def get_env_processors(self):
