@@ -19,7 +19,7 @@ from demo_factory.collect.pictures import PictureCache, default_cache_folder
 from demo_factory.collect.server import CollectApp, CollectServer
 from demo_factory.collect.store import InstructionFile, check_language
 from demo_factory.instructions.human import HumanInstructionError
-from demo_factory.tasks import MULTI_VARIATION_TASKS, SPLITS, get_task
+from demo_factory.tasks import INSTRUCTED_TASKS, SPLITS, get_task
 
 
 def port_number(text: str) -> int:
@@ -37,7 +37,7 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
     parser = subparsers.add_parser(
         "collect-instructions", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter,
         help="serve a local web page where people write instructions for test variations")
-    parser.add_argument("--task", required=True, choices=MULTI_VARIATION_TASKS, help="task name (see `demo-factory tasks`)")
+    parser.add_argument("--task", required=True, choices=INSTRUCTED_TASKS, help="task name (see `demo-factory tasks`)")
     parser.add_argument("--split", default="test", choices=SPLITS,
                         help="variation split; human instructions are for test variations only (default: test)")
     parser.add_argument("--out", required=True, help="the .jsonl file to append to (created if missing)")

@@ -29,11 +29,12 @@ from demo_factory.tasks import Task, Variation, get_task
 from demo_factory.tasks.palette import COLOURS
 
 # Bump when the pictures change, so old cache entries are not served.
-RENDER_VERSION = "v1"
+RENDER_VERSION = "v2"
 PICTURE_SIZE = 320  # pixels, square
 SCENE_CAMERAS = ("left_shoulder", "right_shoulder")
 # The dataset's shoulder cameras, zoomed in so the objects are large enough to see.
 ZOOMED_FOV_DEG = 44.0
+WIDEN_DEG, MAX_WIDENINGS = 8.0, 4  # wider views for goals the zoomed one cuts off
 # The finished tower seen from close by; eye and target are relative to the tower's target spot.
 CLOSE_UP = CameraSpec("close_up", eye=(0.32, 0.3, 0.32), target=(0.0, 0.0, 0.0), fov_deg=40.0)
 BADGE_RADIUS = 13
@@ -149,9 +150,9 @@ def render_variation(task_name: str, variation_id: int) -> dict[str, np.ndarray]
     cameras = tuple(replace(c, fov_deg=ZOOMED_FOV_DEG) for c in DEFAULT_CAMERAS if c.name in SCENE_CAMERAS)
     world = start_scene(task, variation, picture_seed(task, variation), cameras, (PICTURE_SIZE, PICTURE_SIZE))
     try:
-        views = world.render_cameras()
-        pictures = {}
         points = task.goal_points(world, variation)
+        views = framed_views(world, points)
+        pictures = {}
         place = task.goal_place()
         for name, camera in views.items():
             image = cv2.cvtColor(camera.rgb, cv2.COLOR_RGB2BGR)
@@ -168,6 +169,24 @@ def render_variation(task_name: str, variation_id: int) -> dict[str, np.ndarray]
     finally:
         world.close()
     return {name: cv2.cvtColor(image, cv2.COLOR_BGR2RGB) for name, image in pictures.items()}
+
+
+def framed_views(world: World, points: list[np.ndarray]) -> dict:
+    """The scene cameras' views, each widened from ``ZOOMED_FOV_DEG`` in steps of ``WIDEN_DEG`` until every goal
+    point and its badge is inside the picture (a reach_target sphere floats up to 35 cm above the table)."""
+    views = world.render_cameras()
+    for _ in range(MAX_WIDENINGS):
+        cut = {name for name, camera in views.items() for point in points for lift in (0.0, BADGE_LIFT + 0.02)
+               if not _inside(project(point + np.array([0.0, 0.0, lift]), camera), camera.rgb.shape)}
+        if not cut:
+            break
+        world.cameras = tuple(replace(c, fov_deg=c.fov_deg + WIDEN_DEG) if c.name in cut else c for c in world.cameras)
+        views = world.render_cameras()
+    return views
+
+
+def _inside(pixel: tuple[int, int], shape, margin: int = BADGE_RADIUS) -> bool:
+    return margin <= pixel[0] < shape[1] - margin and margin <= pixel[1] < shape[0] - margin
 
 
 def _render_goal(world: World, task: Task, variation: Variation) -> np.ndarray:

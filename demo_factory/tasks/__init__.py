@@ -6,7 +6,7 @@ show of it (the goal for the collection pictures, a wrong action for the tests).
 """
 
 from demo_factory.tasks.base import KeyframeTarget, Task
-from demo_factory.tasks.registry import MULTI_VARIATION_TASKS, TASKS, get_task
+from demo_factory.tasks.registry import INSTRUCTED_TASKS, MULTI_VARIATION_TASKS, TASKS, get_task
 from demo_factory.tasks.variations import SPLITS, Variation
 
-__all__ = ["MULTI_VARIATION_TASKS", "SPLITS", "TASKS", "KeyframeTarget", "Task", "Variation", "get_task"]
+__all__ = ["INSTRUCTED_TASKS", "MULTI_VARIATION_TASKS", "SPLITS", "TASKS", "KeyframeTarget", "Task", "Variation", "get_task"]

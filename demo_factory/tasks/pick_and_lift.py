@@ -87,6 +87,10 @@ class PickAndLift(Task):
                                                   f"the target sphere (within {100 * TOLERANCE:.0f} cm counts)")
         return Failure("block not held", 1, f"the {self.instructed} block is not in the gripper")
 
+    def goal_points(self, world, variation: Variation) -> list[np.ndarray]:
+        """The instructed block, then the target sphere it is lifted to."""
+        return [world.body_pose(self.blocks[variation.words[0]])[0], self.target]
+
     def scene_facts(self) -> dict:
         return {"target": [round(float(v), 6) for v in self.target],
                 "blocks": {c: [round(float(v), 6) for v in self.world.body_pose(b)[0]] for c, b in self.blocks.items()}}

@@ -74,5 +74,8 @@ class PickUpCup(Task):
         cup = self.cups[self.instructed]
         return float(world.body_pose(cup)[0][2]) > LIFTED + WALL / 2 and held(world, cup)
 
+    def goal_points(self, world, variation: Variation) -> list[np.ndarray]:
+        return [world.body_pose(self.cups[variation.words[0]])[0] + [0.0, 0.0, HEIGHT]]
+
     def scene_facts(self) -> dict:
         return {"cups": {c: [round(float(v), 6) for v in self.world.body_pose(b)[0]] for c, b in self.cups.items()}}

@@ -60,6 +60,10 @@ class PutMoneyInSafe(SafeTask):
             return Failure("wrong shelf", 1, f"the money is on the {shelf} shelf where {self.shelf} was instructed")
         return None
 
+    def goal_points(self, world, variation: Variation) -> list[np.ndarray]:
+        """The banknotes, then the instructed shelf."""
+        return [world.body_pose(self.note)[0], self.safe.shelf_point(variation.words[0])]
+
     def scene_facts(self) -> dict:
         return {"safe_front": round(float(self.safe.front), 6), "safe_y": round(float(self.safe.y), 6),
                 "note": [round(float(v), 6) for v in self.world.body_pose(self.note)[0]], "grip_from_rear": GRIP_FROM_REAR}

@@ -50,5 +50,8 @@ class ReachTarget(Task):
     def success(self, world) -> bool:
         return float(np.linalg.norm(world.gripper_pose()[:3] - self.spheres[self.target])) < RADIUS
 
+    def goal_points(self, world, variation: Variation) -> list[np.ndarray]:
+        return [np.asarray(self.spheres[variation.words[0]])]
+
     def scene_facts(self) -> dict:
         return {"spheres": {c: [round(float(v), 6) for v in xyz] for c, xyz in self.spheres.items()}}

@@ -49,8 +49,11 @@ TASKS: dict[str, type[Task]] = {
 }
 
 # Tasks whose variations are ordered colour sequences with unseen test variations (HiveFormer's
-# multi-variation tasks): the ones human-written instructions are collected for.
+# multi-variation tasks).
 MULTI_VARIATION_TASKS: tuple[str, ...] = tuple(name for name, cls in TASKS.items() if cls.max_sequence > 1)
+# Tasks whose instruction names one of several goals (a colour, a drawer, a shelf, a slot, ...): the ones
+# human-written instructions are collected for (`demo-factory collect-instructions`).
+INSTRUCTED_TASKS: tuple[str, ...] = tuple(name for name, cls in TASKS.items() if len(cls().variations) > 1)
 
 
 def get_task(name: str) -> Task:

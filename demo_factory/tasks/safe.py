@@ -62,6 +62,10 @@ class Safe:
     def note_grasp_height(self, shelf: str) -> float:
         return SHELF_TOPS[SHELVES.index(shelf)] + NOTE_HALF[2] + 0.002
 
+    def shelf_point(self, shelf: str) -> np.ndarray:
+        """A point on a shelf's board, a note's half length inside the safe's open face."""
+        return np.array([self.front + NOTE_HALF[0], self.y, SHELF_TOPS[SHELVES.index(shelf)]])
+
     def inside(self, position) -> bool:
         return position[0] > self.front + 0.01 and abs(position[1] - self.y) < INNER_HALF_WIDTH
 

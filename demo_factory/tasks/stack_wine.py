@@ -100,6 +100,11 @@ class StackWine(Task):
                 return Failure("wrong slot", 1, f"the bottle is in the {slot} slot where {self.slot} was instructed")
         return None
 
+    def goal_points(self, world, variation: Variation) -> list[np.ndarray]:
+        """The bottle (its top), then the instructed slot of the rack."""
+        top = world.body_pose(self.bottle)[0] + [0.0, 0.0, BODY_LENGTH / 2 + NECK_LENGTH]
+        return [top, np.array([*self.slot_centre(variation.words[0]), RACK_PLATE + RACK_WALL_HEIGHT])]
+
     def scene_facts(self) -> dict:
         return {"rack": [round(float(v), 6) for v in self.rack_centre],
                 "bottle": [round(float(v), 6) for v in self.world.body_pose(self.bottle)[0]]}

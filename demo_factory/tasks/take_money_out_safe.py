@@ -59,6 +59,10 @@ class TakeMoneyOutSafe(SafeTask):
         position, _ = world.body_pose(self.note)
         return position[0] < self.safe.front - OUT_OF_SAFE and resting_on(world, self.note, world.table)
 
+    def goal_points(self, world, variation: Variation) -> list[np.ndarray]:
+        """The banknotes on the instructed shelf."""
+        return [world.body_pose(self.note)[0]]
+
     def scene_facts(self) -> dict:
         return {"safe_front": round(float(self.safe.front), 6), "safe_y": round(float(self.safe.y), 6),
                 "note": [round(float(v), 6) for v in self.world.body_pose(self.note)[0]]}

@@ -106,5 +106,9 @@ class TurnTap(Task):
                                                        f"{np.degrees(TURNED):.0f}°")
         return None
 
+    def goal_points(self, world, variation: Variation) -> list[np.ndarray]:
+        """The instructed tap's handle."""
+        return [world.body_pose(self.taps[variation.words[0]])[0] + [0.0, 0.0, COLUMN_HEIGHT / 2 + 2 * HANDLE_HALF[2]]]
+
     def scene_facts(self) -> dict:
         return {"taps": {t: [round(float(v), 6) for v in self.world.body_pose(b)[0]] for t, b in self.taps.items()}}
