@@ -91,13 +91,13 @@ def test_probabilities_draw_each_factor_independently():
 
 def test_names_are_checked():
     assert parse_perturbations("lighting, occluder") == ("lighting", "occluder")
-    assert "lookalike" not in parse_perturbations("all", get_task("reach_target"))
+    assert "lookalike" not in parse_perturbations("all", get_task("slide_block_to_target"))
     assert "lookalike" not in parse_perturbations("all", get_task("open_drawer"))  # a drawer of a chest
     assert parse_perturb_option("lighting=0.25,occluder") == {"lighting": 0.25, "occluder": 0.5}
     with pytest.raises(ValueError, match="unknown perturbation 'fog'; accepted: lighting"):
         parse_perturbations("fog")
-    with pytest.raises(ValueError, match="does not apply to reach_target"):
-        parse_perturbations("lookalike", get_task("reach_target"))
+    with pytest.raises(ValueError, match="does not apply to slide_block_to_target: slide_block_to_target has no goal"):
+        parse_perturbations("lookalike", get_task("slide_block_to_target"))
     with pytest.raises(ValueError, match="named twice"):
         parse_perturbations("lighting,lighting")
     with pytest.raises(ValueError, match="out of range; accepted: 0 to 1"):
@@ -121,9 +121,9 @@ def test_generate_and_eval_take_perturb(tmp_path, capsys):
     rows = [e for path in sorted(dataset.glob("*/meta/demo_factory.json")) for e in json.loads(path.read_text())["episodes"]]
     assert [e["perturbations"] for e in rows] == [["lighting"], ["lighting"]]
 
-    assert main(["generate", "--task", "reach_target", "--episodes", "1", "--perturb", "lookalike",
+    assert main(["generate", "--task", "open_drawer", "--episodes", "1", "--perturb", "lookalike",
                  "--out", str(tmp_path / "refused")]) == 2
-    assert "--perturb: perturbation 'lookalike' does not apply to reach_target" in capsys.readouterr().err
+    assert "--perturb: perturbation 'lookalike' does not apply to open_drawer: the first object" in capsys.readouterr().err
     assert not (tmp_path / "refused").exists()
 
     ev = tmp_path / "eval"

@@ -17,7 +17,7 @@ Figure 4) that this simulator can show:
 | ``distractors`` | 2-4 objects of other shapes and colours on free places of the table (visual only) |
 | ``camera_pose`` | the two shoulder cameras moved by up to 4 cm and re-aimed by up to 3 cm (calibration follows) |
 | ``occluder`` | a hand-sized object between one shoulder camera and the workspace (the paper's occluded gripper) |
-| ``lookalike`` | a copy of the first instructed object's look on a free place (the paper's second object that looks like the target); tasks with instructed objects only |
+| ``lookalike`` | a copy of the first object the instruction names on a free place (the paper's second object that looks like the target); not for placements and fixtures |
 
 Objects added by a perturbation have no collision shape: they cannot block the robot or the expert, and what
 they test is the policy's vision. Perturbations compose (``lighting,distractors``); each draws from its own
@@ -250,7 +250,7 @@ LOOKALIKE_MAX_RADIUS = 0.1  # metres: objects larger than this (a chest of drawe
 
 def _lookalike_refusal(task: Task) -> str | None:
     if type(task).goal_points is Task.goal_points:
-        return f"{task.name} names no object in its instructions"
+        return f"{task.name} has no goal object to copy (its goal is a placement)"
     return _copyable(task.name)
 
 
@@ -266,7 +266,8 @@ def _copyable(task_name: str) -> str | None:
         task.build_scene(world, variation, np.random.default_rng(0))
         body = _instructed_body(world, np.asarray(task.goal_points(world, variation)[0]))
         if body is None or _footprint_radius(world, body)[0] > LOOKALIKE_MAX_RADIUS:
-            return f"the object {task_name}'s instructions name is part of a larger fixture"
+            return (f"the first object {task_name}'s instructions name is part of a fixture or wider than "
+                    f"{2 * LOOKALIKE_MAX_RADIUS:g} m")
         return None
     finally:
         world.close()
