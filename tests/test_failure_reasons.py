@@ -232,3 +232,26 @@ def test_pick_and_lift_names_a_lift_off_target_a_wrong_block_and_a_missed_grasp(
     assert record["failure_reason"] == "wrong block picked" and "instructed" in record["failure_detail"]
     assert run("pick_and_lift", CurrentPosePolicy())["failure_reason"] == "block not held"
     assert run("pick_and_lift", Scripted(lambda env: env.expert_keyframes))["failure_reason"] is None
+
+
+# -- stack_blocks and reach_and_drag --------------------------------------------------------------------
+def test_stack_blocks_names_the_level_it_stopped_at():
+    from demo_factory.tasks.stack_blocks import N_STACK
+
+    per_block = 8  # grasp (4) + place (4)
+    record = run("stack_blocks", Scripted(lambda env: env.expert_keyframes[:per_block]))
+    assert (record["failure_reason"], record["failure_subgoal"]) == ("stack incomplete", 2), record["failure_detail"]
+    assert record["failure_detail"].startswith(f"1 of {N_STACK} ")
+    record = run("stack_blocks", Scripted(lambda env: env.sim_task.wrong_keyframes(env.world)))
+    assert (record["failure_reason"], record["failure_subgoal"]) == ("wrong block stacked", 3), record["failure_detail"]
+    record = run("stack_blocks", Scripted(lambda env: env.expert_keyframes[:per_block + 3]))  # grasped, not placed
+    assert (record["failure_reason"], record["failure_subgoal"]) == ("block still held", 2), record["failure_detail"]
+
+
+def test_reach_and_drag_says_where_the_cube_ended():
+    record = run("reach_and_drag", Scripted(lambda env: env.sim_task.wrong_keyframes(env.world)))
+    assert record["failure_reason"] == "cube on wrong target", record["failure_detail"]
+    record = run("reach_and_drag", Scripted(lambda env: env.expert_keyframes[:3]))  # the stick grasped, no drag
+    assert record["failure_reason"] == "cube not moved", record["failure_detail"]
+    record = run("reach_and_drag", CurrentPosePolicy())
+    assert record["failure_reason"] == "stick not held", record["failure_detail"]

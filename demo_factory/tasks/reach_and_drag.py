@@ -6,8 +6,8 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from demo_factory.tasks import motions
-from demo_factory.tasks.base import KeyframeTarget, Task
-from demo_factory.tasks.objects import Part, add_body, at_rest, free_of_robot
+from demo_factory.tasks.base import Failure, KeyframeTarget, Task
+from demo_factory.tasks.objects import Part, add_body, at_rest, free_of_robot, held
 from demo_factory.tasks.palette import TOWER_COLOURS, rgba
 from demo_factory.tasks.variations import Variation
 
@@ -103,6 +103,7 @@ class ReachAndDrag(Task):
         # The cube roughly square to its drag, so the hook meets a face rather than a corner.
         drag = self.targets[self.instructed] - cube_xy
         cube_yaw = float(np.arctan2(drag[1], drag[0])) + rng.uniform(-CUBE_YAW, CUBE_YAW)
+        self.cube_start = cube_xy
         self.cube = world.add_box((CUBE_HALF,) * 3, (*cube_xy, CUBE_HALF), (0.85, 0.85, 0.9, 1.0), mass=CUBE_MASS,
                                   orientation=Rotation.from_euler("z", cube_yaw).as_quat(), friction=CUBE_FRICTION)
         (sx0, sx1), (sy0, sy1) = STICK_REGION
@@ -153,6 +154,23 @@ class ReachAndDrag(Task):
         position, _ = world.body_pose(self.cube)
         return (float(np.linalg.norm(position[:2] - self.targets[self.instructed])) < TOLERANCE
                 and at_rest(world, self.cube) and free_of_robot(world, self.cube))
+
+    def failure(self, world) -> Failure | None:
+        """"cube on wrong target" when the cube rests on a distractor square; "cube not moved" when it is within
+        1 cm of where it started, with "stick not held" when the stick is not in the gripper either; else "cube
+        off target", with its distance."""
+        cube = world.body_pose(self.cube)[0][:2]
+        wrong = next((c for c, xy in self.targets.items() if c != self.instructed
+                      and np.linalg.norm(cube - xy) < TOLERANCE), None)
+        if wrong is not None:
+            return Failure("cube on wrong target", None, f"the cube is on the {wrong} square, not the {self.instructed}")
+        if np.linalg.norm(cube - self.cube_start) < 0.01:
+            if not held(world, self.stick):
+                return Failure("stick not held", None, "the cube never moved and the stick is not in the gripper")
+            return Failure("cube not moved", None, "the stick is held but the cube never moved")
+        distance = float(np.linalg.norm(cube - self.targets[self.instructed]))
+        return Failure("cube off target", None, f"the cube is {100 * distance:.1f} cm from the {self.instructed} "
+                                                f"square's centre (success within {100 * TOLERANCE:.0f} cm)")
 
     def scene_facts(self) -> dict:
         stick_position, stick_orientation = self.world.body_pose(self.stick)

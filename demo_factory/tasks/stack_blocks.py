@@ -6,8 +6,8 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from demo_factory.tasks import motions
-from demo_factory.tasks.base import KeyframeTarget, Task, spread_positions
-from demo_factory.tasks.objects import at_rest, free_of_robot, upright
+from demo_factory.tasks.base import Failure, KeyframeTarget, Task, spread_positions
+from demo_factory.tasks.objects import at_rest, free_of_robot, held, upright
 from demo_factory.tasks.palette import TOWER_COLOURS, rgba
 from demo_factory.tasks.pick_and_lift import folded_yaw
 from demo_factory.tasks.variations import Variation
@@ -98,16 +98,34 @@ class StackBlocks(Task):
     def success(self, world) -> bool:
         """``N_STACK`` instructed blocks each resting on the one below, the bottom one on the platform, none
         touched by the robot (RLBench: the blocks detected on the platform, the gripper empty)."""
-        below = np.array([*self.platform_xy, PLATFORM_TOP])
-        remaining = list(self.blocks)
-        for level in range(N_STACK):
-            tolerance = ON_PLATFORM if level == 0 else STACK_TOLERANCE
+        return len(self.stacked(world)[0]) == N_STACK
+
+    def stacked(self, world) -> tuple[list[int], np.ndarray, float]:
+        """The instructed blocks that rest in the stack, bottom first, and where the next one would go: (blocks,
+        the top surface they leave, its xy tolerance)."""
+        below, tolerance = np.array([*self.platform_xy, PLATFORM_TOP]), ON_PLATFORM
+        stack, remaining = [], list(self.blocks)
+        for _ in range(N_STACK):
             on_it = [b for b in remaining if self._rests_on(world, b, below, tolerance)]
             if not on_it:
-                return False
+                break
+            stack.append(on_it[0])
             remaining.remove(on_it[0])
-            below = world.body_pose(on_it[0])[0] + [0.0, 0.0, CUBE / 2]
-        return True
+            below, tolerance = world.body_pose(on_it[0])[0] + [0.0, 0.0, CUBE / 2], STACK_TOLERANCE
+        return stack, below, tolerance
+
+    def failure(self, world) -> Failure | None:
+        """"wrong block stacked" when a distractor rests where the next block goes; "block still held" when the
+        gripper holds an instructed block at the end; else "stack incomplete", each at the first level missing."""
+        stack, below, tolerance = self.stacked(world)
+        level = len(stack) + 1
+        if any(self._rests_on(world, b, below, tolerance) for b in self.distractors):
+            return Failure("wrong block stacked", level, f"a {self.distractor} block (not in the instruction) stands "
+                                                         f"where {self.colour} block {level} goes")
+        if any(held(world, b) for b in self.blocks):
+            return Failure("block still held", level, f"{len(stack)} of {N_STACK} blocks stacked, one more in the "
+                                                      "gripper, never let go")
+        return Failure("stack incomplete", level, f"{len(stack)} of {N_STACK} {self.colour} blocks stacked")
 
     def _rests_on(self, world, block: int, top: np.ndarray, tolerance: float) -> bool:
         """The block sits on the surface centred at ``top`` (within ``tolerance`` in xy), upright, still and
