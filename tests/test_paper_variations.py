@@ -141,7 +141,7 @@ def test_recordings_of_the_old_numbering_are_refused(tmp_path):
     path = EpisodeWriter(tmp_path / "old.mcap", info).close(0, True, [], {})
     with pytest.raises(RecordingError, match="format version 1 numbers variations the old way .*regenerate"):
         read_episode(path)
-    assert FORMAT_VERSION == 5
+    assert FORMAT_VERSION == 6
 
 
 def test_datasets_of_the_old_numbering_are_refused():
