@@ -225,7 +225,7 @@ def run(args) -> int:
     factors = _factors(args.perturb, plan)
     conditions = {"": plan} | {f: {s: [replace(e, perturbations=(f,)) for e in es] for s, es in plan.items()}
                                for f in factors}
-    rows: dict[str, dict[str, list[dict]]] = {c: {split: [] for split in plan} for c in conditions}
+    by_condition: dict[str, dict[str, list[dict]]] = {c: {split: [] for split in plan} for c in conditions}
     for each_task in sorted({e.task for episodes in plan.values() for e in episodes}):  # one scene at a time
         env = make_env(each_task, control.action_space, fps=control.fps, max_seconds=control.max_seconds,
                        step_slack=args.step_slack, image_size=size,
@@ -234,7 +234,7 @@ def run(args) -> int:
             for condition, condition_plan in conditions.items():
                 for split, episodes in condition_plan.items():
                     mine: list[dict] = []  # this task's rows of the split
-                    done = rows[condition][split]
+                    done = by_condition[condition][split]
                     bar = tqdm([e for e in episodes if e.task == each_task], unit="episode", file=sys.stderr,
                                desc=f"{policy.name} / {split}" + (f" / {each_task}" if each_task != task else "")
                                + (f" / {condition}" if condition else ""))
@@ -248,16 +248,15 @@ def run(args) -> int:
                     done += mine
         finally:
             env.close()
-    robustness = {f: {split: summarise(split_rows) for split, split_rows in rows[f].items()} for f in factors}
-    every_row, rows = rows, rows[""]
+    robustness = {f: {split: summarise(split_rows) for split, split_rows in by_condition[f].items()} for f in factors}
+    rows = by_condition[""]
     results = {split: summarise(split_rows) for split, split_rows in rows.items()}
     for split in PER_SENTENCE_SPLITS:
         if rows.get(split):
             results[split]["per_sentence"] = per_sentence(rows[split])
-    records = [row for condition in every_row.values() for split_rows in condition.values() for row in split_rows]
+    records = [row for condition in by_condition.values() for split_rows in condition.values() for row in split_rows]
     write_results(staging, policy.name, task, results, asdict(control), robustness)
-    if factors:
-        contact_sheets(staging, plan, factors, size)
+    contact_sheets(staging, plan, factors, size)
     with open(staging / "episodes.jsonl", "w") as stream:
         for row in records:
             stream.write(json.dumps(row) + "\n")

@@ -210,24 +210,21 @@ def robustness_table(results: dict[str, dict], robustness: dict[str, dict[str, d
         rates = [100 * robustness[f][split]["success_rate"] for f in factors]
         lines.append(f"| {split} | {100 * summary['success_rate']:.1f} | " + " | ".join(f"{r:.1f}" for r in rates)
                      + f" | {np.mean(rates):.1f} |")
-    reasons = Counter()
-    for summaries in robustness.values():
-        for summary in summaries.values():
-            reasons.update(summary["failure_reasons"])
+    counts = {factor: sum((Counter(s["failure_reasons"]) for s in summaries.values()), Counter())
+              for factor, summaries in robustness.items()}
+    reasons = [reason for reason, _ in sum(counts.values(), Counter()).most_common()]
     if reasons:
         lines += ["\n## Under perturbation: failed episodes by reason (all splits)\n",
-                  "| factor | " + " | ".join(r for r, _ in reasons.most_common()) + " |", "|---|" + "---:|" * len(reasons)]
-        for factor, summaries in robustness.items():
-            counts = Counter()
-            for summary in summaries.values():
-                counts.update(summary["failure_reasons"])
-            lines.append(f"| {factor} | " + " | ".join(str(counts.get(r, 0)) for r, _ in reasons.most_common()) + " |")
+                  "| factor | " + " | ".join(reasons) + " |", "|---|" + "---:|" * len(reasons)]
+        lines += [f"| {factor} | " + " | ".join(str(c.get(r, 0)) for r in reasons) + " |" for factor, c in counts.items()]
     return "\n".join(lines) + "\n"
 
 
 def contact_sheets(out: Path, plan: dict[str, list[EvalEpisode]], factors, image_size) -> list[Path]:
     """``contact_<factor>.png`` per factor: the first evaluated scene's start, every camera, without (top row)
-    and under the factor (bottom row), so a person sees what changed."""
+    and under the factor (bottom row), so a person sees what changed; none without factors."""
+    if not factors:
+        return []
     episode = next(e for episodes in plan.values() for e in episodes)
     return [contact_sheet(out / f"contact_{factor}.png", episode.task, episode.variation_id, episode.seed, factor,
                           image_size) for factor in factors]

@@ -144,17 +144,15 @@ def _object_shade(world, task, variation, rng) -> dict:
     return {"bodies": shades}
 
 
+def _link_boxes(world: World, body: int) -> list[tuple[np.ndarray, np.ndarray]]:
+    """The (low, high) corners of the bounding box of each of a body's links, the base first."""
+    return [tuple(np.array(corner) for corner in p.getAABB(body, link, physicsClientId=world.client))
+            for link in range(-1, p.getNumJoints(body, physicsClientId=world.client))]
+
+
 def _footprints(world: World) -> list[tuple[np.ndarray, np.ndarray]]:
-    """The xy bounding boxes of every body but the table (the robot's links too)."""
-    boxes = []
-    for body in world.obstacle_bodies() + [world.robot]:
-        if body == world.table:
-            continue
-        links = range(-1, p.getNumJoints(body, physicsClientId=world.client))
-        for link in links:
-            low, high = p.getAABB(body, link, physicsClientId=world.client)
-            boxes.append((np.array(low[:2]), np.array(high[:2])))
-    return boxes
+    """The xy bounding boxes of every link of every body but the table (the robot's too)."""
+    return [(low[:2], high[:2]) for body in _task_bodies(world) + [world.robot] for low, high in _link_boxes(world, body)]
 
 
 def free_place(world: World, rng: np.random.Generator, radius: float, taken: list, tries: int = 200) -> np.ndarray | None:
@@ -162,9 +160,9 @@ def free_place(world: World, rng: np.random.Generator, radius: float, taken: lis
     ``taken`` discs ((centre, radius) pairs); None when ``tries`` draws find none."""
     boxes = _footprints(world)
     (x0, x1), (y0, y1) = FREE_AREA
+    gap = radius + CLEARANCE
     for _ in range(tries):
         point = np.array([rng.uniform(x0, x1), rng.uniform(y0, y1)])
-        gap = radius + CLEARANCE
         if any(np.all(point > low - gap) and np.all(point < high + gap) for low, high in boxes):
             continue
         if any(np.linalg.norm(point - centre) < r + radius + CLEARANCE for centre, r in taken):
@@ -237,12 +235,8 @@ def _camera_pose(world, task, variation, rng) -> dict:
 
 def _instructed_body(world: World, point: np.ndarray) -> int | None:
     """The task body whose bounding box holds ``point`` (within 1 cm)."""
-    for body in _task_bodies(world):
-        for link in range(-1, p.getNumJoints(body, physicsClientId=world.client)):
-            low, high = p.getAABB(body, link, physicsClientId=world.client)
-            if np.all(point > np.array(low) - 0.01) and np.all(point < np.array(high) + 0.01):
-                return body
-    return None
+    return next((body for body in _task_bodies(world) for low, high in _link_boxes(world, body)
+                 if np.all(point > low - 0.01) and np.all(point < high + 0.01)), None)
 
 
 LOOKALIKE_MAX_RADIUS = 0.1  # metres: objects larger than this (a chest of drawers, an oven) are not copied
@@ -275,11 +269,9 @@ def _copyable(task_name: str) -> str | None:
 
 def _footprint_radius(world: World, body: int) -> tuple[float, np.ndarray]:
     """Half the diagonal of a body's xy bounding box (all links) and the box's centre."""
-    low, high = p.getAABB(body, -1, physicsClientId=world.client)
-    for link in range(p.getNumJoints(body, physicsClientId=world.client)):
-        l2, h2 = p.getAABB(body, link, physicsClientId=world.client)
-        low, high = np.minimum(low, l2), np.maximum(high, h2)
-    low, high = np.array(low[:2]), np.array(high[:2])
+    boxes = _link_boxes(world, body)
+    low = np.min([b[0] for b in boxes], axis=0)[:2]
+    high = np.max([b[1] for b in boxes], axis=0)[:2]
     return float(np.linalg.norm(high - low)) / 2, (low + high) / 2
 
 
