@@ -87,6 +87,8 @@ def test_the_checkpoint_kept_is_the_best_on_validation_the_later_on_a_tie():
     (["--extra-episodes", "-1"], "--extra-episodes -1: a number >= 0"),
     (["--unseen", "--extra-episodes", "5"], "--extra-episodes 5: a number >= 0, above 0 only for HiveFormer runs without"),
     (["--policy", "act", "--extra-episodes", "5"], "--extra-episodes 5: a number >= 0, above 0 only for HiveFormer runs"),
+    (["--perturb", "fog"], "--perturb fog: unknown perturbation 'fog'; accepted: lighting,"),
+    (["--perturb", "all=1.5"], "--perturb all=1.5: perturbation probability 1.5 of 'all' is out of range"),
 ])
 def test_bad_options_are_refused_naming_the_value(argv, message, capsys):
     with pytest.raises(SystemExit) as exit_:
@@ -183,6 +185,22 @@ def test_seen_runs_give_their_one_colour_variation_more_episodes_of_their_own_sc
     # Two episodes of each one-button variation (navy is a colour sequence, 205 an id), none of the three-button one.
     assert len(recorded) == 4 and sum("var0205" in name for name in recorded) == 2
     assert not any("var0002_" in name for name in recorded)
+
+
+def test_randomised_runs_perturb_every_training_generation_and_nothing_else():
+    from demo_factory.tools.reference_run import (
+        extra_generation_command,
+        generate_test_command,
+        parse_arguments,
+        train_generation_command,
+    )
+
+    args = parse_arguments(["--perturb", "all=0.3", "--robustness"])
+    assert args.robustness
+    for command in (train_generation_command(args, args.variations, 2), extra_generation_command(args)):
+        assert command[command.index("--perturb") + 1] == "all=0.3"
+    assert "--perturb" not in generate_test_command(args)  # the unseen splits' scenes stay as evaluated
+    assert "--perturb" not in train_generation_command(parse_arguments([]), ["2"], 2)
 
 
 def test_checkpoints_are_saved_at_every_curve_point_and_at_most_500_steps_apart():

@@ -49,6 +49,7 @@ from lerobot_policy_hiveformer.configuration_hiveformer import TEXT_ENCODERS
 from demo_factory.convert.converter import read_dataset_provenance
 from demo_factory.convert.usage import MULTI_TASK_RECIPE, MULTI_TASK_STEPS, act_chunk, act_train_args, policy_flags
 from demo_factory.instructions import shipped_human_instructions
+from demo_factory.rollout.perturbations import parse_perturb_option
 from demo_factory.suites import SUITES
 from demo_factory.tasks import TASKS, get_task
 
@@ -382,6 +383,12 @@ def parse_arguments(argv=None) -> argparse.Namespace:
     parser.add_argument("--train-arg", action="append", default=[], metavar="--KEY=VALUE",
                         help="extra lerobot-train argument, repeatable (e.g. --train-arg=--policy.whole_episodes=true); "
                         "it replaces the run's own setting of the same key")
+    parser.add_argument("--perturb", metavar="NAME[=P],...", help="training episodes generated under named "
+                        "perturbations, each factor with its probability (`demo-factory generate --perturb`, e.g. "
+                        "all=0.3; docs/robustness.md); validation and evaluation scenes stay unperturbed")
+    parser.add_argument("--robustness", action="store_true", help="also evaluate the kept checkpoint on the curve's "
+                        "splits under every perturbation (`demo-factory eval --perturb all`, --eval-episodes each), "
+                        "into OUT/robustness")
     parser.add_argument("--seed", type=int, default=TRAIN_SEED, help="lerobot-train's seed: other seeds show how "
                         f"much the result varies with the initial weights and batch order (default: {TRAIN_SEED})")
     args = parser.parse_args(argv)
@@ -399,6 +406,11 @@ def parse_arguments(argv=None) -> argparse.Namespace:
         if outside or args.train_variations is not None:
             parser.error(f"--variation {outside[0]}: with --unseen, a paper train id 0-99" if outside else
                          "--variation and --train-variations: with --unseen, one or the other")
+    if args.perturb is not None:
+        try:
+            parse_perturb_option(args.perturb)
+        except ValueError as error:
+            parser.error(f"--perturb {args.perturb}: {error}")
     malformed = [a for a in args.train_arg if not (a.startswith("--") and "=" in a)]
     if malformed:
         parser.error(f"--train-arg {malformed[0]!r}: expected --KEY=VALUE (a lerobot-train argument)")
@@ -481,7 +493,8 @@ def train_generation_command(args: argparse.Namespace, variations: list[str], ep
                              task: str | None = None) -> list[str]:
     """`demo-factory generate` of `episodes` training episodes of each of `variations` (without --out)."""
     return generate_command(args, task) + ["--split", "train", *[f"--variation={v}" for v in variations],
-                                     "--episodes-per-variation", str(episodes)]
+                                           "--episodes-per-variation", str(episodes),
+                                           *(["--perturb", args.perturb] if args.perturb else [])]
 
 
 def single_colour_variations(task_name: str, variations: list[str]) -> list[str]:
@@ -564,15 +577,26 @@ def main(argv=None) -> int:
           [str(BIN / "demo-factory"), "eval", "--policy.path", str(kept), "--dataset", str(dataset),
            "--episodes", str(args.eval_episodes), "--out", str(evaluation), "--overwrite"], out)
 
+    if args.robustness:
+        stage("robustness", out / "robustness" / "results.json", timings,
+              [str(BIN / "demo-factory"), "eval", "--policy.path", str(kept), "--dataset", str(dataset),
+               "--splits", ",".join(CURVE_SPLITS[args.unseen]), "--episodes", str(args.eval_episodes),
+               "--perturb", "all", "--out", str(out / "robustness"), "--overwrite"], out)
+
     results = json.loads((evaluation / "results.json").read_text())
     train_log = out / "train.log"
     summary = {"configuration": vars(args) | {"out": str(out),
                                               **({"dense_fps": DENSE_FPS, "action_space": "joints"} if dense else {})},
                "stage_seconds": timings, "train_step": train_log_timings(train_log.read_text() if train_log.exists() else ""), "wall_seconds_this_invocation": round(time.time() - began, 1),
                "learning_curve": curve, "selected_step": chosen,
-               "evaluated_checkpoint": str(kept), "results": results}
+               "evaluated_checkpoint": str(kept), "results": results,
+               **({"robustness": json.loads((out / "robustness" / "results.json").read_text())["perturbations"]}
+                  if args.robustness else {})}
     (out / "reference_run.json").write_text(json.dumps(summary, indent=2, default=str) + "\n")
     print((evaluation / "results.md").read_text())
+    if args.robustness:
+        report = (out / "robustness" / "results.md").read_text()
+        print(report[report.index("## Under perturbation"):])
     if curve:
         plot_learning_curve(out / "learning_curve.png", curve, f"{args.suite or args.task}: HiveFormer, seed {args.seed}")
         unseen = "test_unseen_synthetic_success_rate"
