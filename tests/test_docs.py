@@ -105,6 +105,9 @@ def test_a_reference_run_summary_becomes_a_row_and_the_table_follows(tmp_path):
         "unseen_paraphrased": "50.0", "unseen_human": "65.0", "status": "completed", "current": "0",
         "note": "a test run"}
     assert "MiniLM | 3 | 100 | 90 | 12.5 | 50 | 65 | 55 |" in runs.results_table(rows)
+    randomised = {**summary, "configuration": {**summary["configuration"], "perturb": "all=0.3", "robustness": True}}
+    assert runs.run_row(randomised, "x")["command"] == ("python -m demo_factory.tools.reference_run --unseen "
+                                                        "--perturb all=0.3 --robustness --seed 2")
 
 
 def test_runs_add_refuses_a_file_that_is_no_run_summary(tmp_path, capsys):

@@ -156,6 +156,8 @@ def run_row(summary: dict, note: str, recipe: str | None = None, status: str = "
     command += [f"--task {config['task']}"] if config.get("task", "push_buttons") != "push_buttons" else []
     command += ["--unseen"] if config.get("unseen") else []
     command += [f"--policy {config['policy']}"] if config.get("policy", "hiveformer") != "hiveformer" else []
+    command += [f"--perturb {config['perturb']}"] if config.get("perturb") else []
+    command += ["--robustness"] if config.get("robustness") else []
     command += [f"--seed {config['seed']}", *(f"--train-arg={arg}" for arg in config.get("train_arg") or [])]
     step = summary.get("train_step", {}).get("updt_s")
     return {
