@@ -108,6 +108,21 @@ def test_a_reference_run_summary_becomes_a_row_and_the_table_follows(tmp_path):
     randomised = {**summary, "configuration": {**summary["configuration"], "perturb": "all=0.3", "robustness": True}}
     assert runs.run_row(randomised, "x")["command"] == ("python -m demo_factory.tools.reference_run --unseen "
                                                         "--perturb all=0.3 --robustness --seed 2")
+    # A summary that records its command gives it as typed; an ablation's row is filed under its ablation row.
+    typed = "python -m demo_factory.tools.reference_run --unseen --ablation no_history --steps 400 --curve 2"
+    ablation = {**summary, "command": typed, "configuration": {**summary["configuration"], "ablation": "no_history"}}
+    runs.add_run(table, {**runs.run_row(ablation, "x"), "current": "1"})
+    assert {"command": typed, "recipe": "ablation no_history"}.items() <= runs.read_runs(table)[0].items()
+    layout = runs.ablation_table(runs.read_runs(table))
+    assert "| full model | `make reference-unseen` | 3 | 100 | 90 | 12.5 | 65 |" in layout
+    assert "| without history | `reference_run --unseen --ablation no_history` | 2 | 100 | 90 | 12.5 | 65 |" in layout
+    assert "| without E_x | `reference_run --unseen --ablation no_ex` | — | not run | not run | not run | not run |" in layout
+
+
+def test_the_ablation_table_of_the_unseen_page_is_the_run_tables():
+    page = ROOT / "docs" / "reference" / "unseen.md"
+    assert runs.marked_table(page.read_text(), runs.ABLATION_BEGIN, runs.ABLATION_END) == runs.ablation_table(
+        runs.read_runs())
 
 
 def test_runs_add_refuses_a_file_that_is_no_run_summary(tmp_path, capsys):

@@ -297,6 +297,7 @@ def test_save_and_load_give_identical_outputs(tiny_dataset_root, tmp_path):
         {"instruction_as_sequence": False},
         {"text_encoder": "one_hot"},
         {"use_position_embeddings": False},
+        {"use_column_embeddings": False},
         {"instruction_position_embeddings": False},
         {"stem_point_cloud": True},
         {"instruction_layers": 1},
@@ -306,6 +307,8 @@ def test_save_and_load_give_identical_outputs(tiny_dataset_root, tmp_path):
 )
 def test_ablations_train_and_act(tiny_dataset_root, ablation):
     policy = make_tiny_policy(tiny_dataset_root, **ablation)
+    if "use_column_embeddings" in ablation:  # E_x left out alone: the row embedding E_y stays
+        assert not hasattr(policy.model, "patch_col_embedding") and hasattr(policy.model, "patch_row_embedding")
     expected_steps = 1 if ablation.get("use_history") is False else 3
     assert policy.config.observation_delta_indices == list(range(1 - expected_steps, 1))
     batch = history_batch(tiny_dataset_root, policy.config, [1, 8])

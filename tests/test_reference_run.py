@@ -73,7 +73,8 @@ def test_the_checkpoint_kept_is_the_best_on_validation_the_later_on_a_tie():
 @pytest.mark.parametrize("argv, message", [
     (["--steps", "10", "--curve", "3"], "--curve 3: a positive number of checkpoints that divides --steps 10"),
     (["--policy", "act", "--task", "tower"], "--task tower: the act reference run is push_buttons only"),
-    (["--unseen", "--task", "tower"], "--unseen is the HiveFormer push_buttons run on the paper's train variations"),
+    (["--unseen", "--policy", "act"], "--unseen is the HiveFormer run on the paper's train variations: without --policy"),
+    (["--unseen", "--task", "tower", "--ablation", "one_hot"], "--ablation one_hot: one of the paper's ablation rows"),
     (["--unseen", "--variation", "150"], "--variation 150: with --unseen, a paper train id 0-99"),
     (["--unseen", "--variation", "red"], "--variation red: with --unseen, a paper train id 0-99"),
     (["--unseen", "--variation", "3", "--train-variations", "5"], "--variation and --train-variations: with --unseen, one"),
@@ -87,6 +88,12 @@ def test_the_checkpoint_kept_is_the_best_on_validation_the_later_on_a_tie():
     (["--extra-episodes", "-1"], "--extra-episodes -1: a number >= 0"),
     (["--unseen", "--extra-episodes", "5"], "--extra-episodes 5: a number >= 0, above 0 only for HiveFormer runs without"),
     (["--policy", "act", "--extra-episodes", "5"], "--extra-episodes 5: a number >= 0, above 0 only for HiveFormer runs"),
+    (["--ablation", "no_history"], "--ablation no_history: one of the paper's ablation rows, measured against `make "
+                                   "reference-unseen`: only with --unseen, on push_buttons"),
+    (["--unseen", "--ablation", "no_history", "--train-arg=--policy.use_history=true"],
+     "--ablation no_history: --policy.use_history=true would undo it"),
+    (["--unseen", "--ablation", "one_hot", "--text-encoder", "minilm"], "--ablation one_hot: --text-encoder would undo it"),
+    (["--unseen", "--ablation", "no_hands"], "argument --ablation: invalid choice: 'no_hands'"),
     (["--perturb", "fog"], "--perturb fog: unknown perturbation 'fog'; accepted: lighting,"),
     (["--perturb", "all=1.5"], "--perturb all=1.5: perturbation probability 1.5 of 'all' is out of range"),
 ])
@@ -128,7 +135,7 @@ def test_make_reference_pins_its_recipe_and_train_arguments_replace_settings(tmp
     from demo_factory.tools.reference_run import SEEN_RECIPE, UNSEEN_RECIPE, hiveformer_run_command, policy_flags
 
     run = Namespace(task="push_buttons", suite=None, unseen=False, steps=1500, batch_size=16, text_encoder="one_hot",
-                    n_history=10, curve=1, train_arg=[])
+                    n_history=10, curve=1, train_arg=[], ablation=None)
     command = hiveformer_run_command(run, tmp_path / "train", tmp_path / "out")
     assert set(policy_flags(SEEN_RECIPE)) <= set(command) and "--policy.n_history=10" in command and "--save_freq=500" in command
     run.train_arg = ["--policy.whole_episodes=true"]
@@ -235,3 +242,53 @@ def test_unseen_runs_take_the_paper_train_ids_asked_and_say_which_test_ones_they
     note = composability_note(first_20)
     assert note.startswith("note: 68 of the 100 test variations") and "azure second" in note and "third" in note
     assert composability_note([str(i) for i in range(100, 200)]) is None  # (test ids: every press is made)
+
+
+def test_each_ablation_is_the_unseen_run_with_one_part_of_the_model_taken_out(tmp_path):
+    from demo_factory.tools.reference_run import (ABLATIONS, UNSEEN_RECIPE, hiveformer_run_command, parse_arguments,
+                                                  policy_flags)
+    from demo_factory.tools.runs import ABLATION_ROWS
+
+    assert set(ABLATIONS) == set(ABLATION_ROWS)  # every ablation has its row in the ablation table
+    full = hiveformer_run_command(parse_arguments(["--unseen"]), tmp_path / "train", tmp_path / "out")
+    for name, settings in ABLATIONS.items():
+        args = parse_arguments(["--unseen", "--ablation", name])
+        command = hiveformer_run_command(args, tmp_path / "train", tmp_path / "out")
+        changed = set(policy_flags(settings))
+        assert changed <= set(command) and not changed & set(full)
+        # Everything else is the full model's: the same steps, recipe and data.
+        keys = {flag.split("=", 1)[0] for flag in changed}
+        unchanged = [a for a in command if a.split("=", 1)[0] not in keys]
+        assert unchanged == [a for a in full if a.split("=", 1)[0] not in keys]
+        assert set(policy_flags(UNSEEN_RECIPE)) - changed <= set(command)
+    one_hot = parse_arguments(["--unseen", "--ablation", "one_hot"])
+    assert one_hot.text_encoder == "one_hot"  # as its reference_run.json records it
+    assert "--policy.text_encoder=minilm_words" not in hiveformer_run_command(one_hot, tmp_path, tmp_path)
+
+
+@pytest.mark.parametrize("argv, folder", [
+    ([], "reference"), (["--policy", "act"], "reference_act"), (["--task", "tower"], "reference_tower"),
+    (["--suite", "ten_tasks"], "reference_ten_tasks"), (["--unseen"], "reference_unseen"),
+    (["--unseen", "--task", "tower"], "reference_tower_unseen"),
+    (["--unseen", "--ablation", "no_ex"], "reference_unseen_no_ex"),
+])
+def test_each_run_has_a_folder_of_its_own_by_default(argv, folder):
+    from demo_factory.tools.reference_run import default_out, parse_arguments
+
+    assert default_out(parse_arguments(argv)) == Path("outputs") / folder
+
+
+def test_tower_unseen_is_the_unseen_chain_on_towers_paper_variations(tmp_path):
+    from demo_factory.tools.reference_run import (UNSEEN, UNSEEN_RECIPE, generate_test_command, hiveformer_run_command,
+                                                  parse_arguments, policy_flags)
+    from demo_factory.tools.runs import run_row
+
+    args = parse_arguments(["--unseen", "--task", "tower"])  # make reference-tower-unseen
+    assert args.variations == [str(i) for i in range(100)] and args.extra_episodes == 0
+    assert (args.steps, args.episodes_per_variation, args.text_encoder) == (
+        UNSEEN["steps"], UNSEEN["episodes_per_variation"], UNSEEN["text_encoder"])
+    assert set(policy_flags(UNSEEN_RECIPE)) <= set(hiveformer_run_command(args, tmp_path, tmp_path))
+    test = generate_test_command(args)  # one episode of each test variation the authors' sentences name
+    assert test[test.index("--task") + 1] == "tower" and "--variations-from" in test
+    summary = {"configuration": vars(args), "stage_seconds": {}, "results": {"splits": {}}}
+    assert run_row(summary, "x")["recipe"] == "make reference-tower-unseen"

@@ -5,6 +5,8 @@
     python -m demo_factory.tools.reference_run --task tower [--out outputs/reference_tower]   (or `make reference-tower`)
     python -m demo_factory.tools.reference_run --unseen [--out outputs/reference_unseen]     (or `make reference-unseen`)
     python -m demo_factory.tools.reference_run --suite ten_tasks [--out outputs/reference_ten_tasks]   (`make reference-suite`)
+    python -m demo_factory.tools.reference_run --unseen --task tower   (`make reference-tower-unseen`)
+    python -m demo_factory.tools.reference_run --unseen --ablation no_history   (one of the paper's ablation rows)
 
 The whole chain with the real components and the commands a user runs: `demo-factory generate` (push_buttons
 or tower demonstrations of a few train variations, one of each length, plus test-variation episodes for the
@@ -22,7 +24,8 @@ at least every 500 steps).
 With `--unseen` the run is built to show instructions followed that were never seen: the paper's train
 variations 0-99 (6 episodes each), pretrained MiniLM's context-free word-piece instruction features, windows
 as `make reference` with the authors' 4-channel CNN stem, the test episodes on the paper's test variations that
-the authors' human-written sentences name, and a learning curve of both the seen and the unseen-synthetic success.
+the authors' human-written sentences name, and a learning curve of both the seen and the unseen-synthetic success
+(push_buttons, or tower with `--task tower`); `--ablation NAME` takes one part of the model out of that run.
 With `--suite NAME` it trains one multi-task policy over a suite's tasks in the paper's Table 1 setting (each
 task's first train variation, its synthetic instructions) and reports success per task and their average.
 At the end it prints the results table (also `OUT/eval/results.md`, `results.json`, `results.png`)
@@ -36,6 +39,7 @@ import argparse
 import json
 import os
 import re
+import shlex
 import shutil
 import statistics
 import subprocess
@@ -99,6 +103,13 @@ EXTRA_SEED = 5
 UNSEEN = {"episodes_per_variation": 6, "test_episodes_per_variation": 1,
           "text_encoder": "minilm_words", "steps": 8000, "curve": 4, "eval_episodes": 40}
 CURVE_SPLITS = {False: ("train",), True: ("train", "test_unseen_synthetic")}
+# --ablation NAME: the paper's ablation rows, each `make reference-unseen`'s chain (same data, steps and seed) with one
+# part of the model taken out (HiveformerConfig fields): the history, the instruction as a token sequence (averaged
+# into one token, the paper's "Avg."), the patch-column embedding E_x, both patch-position embeddings E_x and E_y, the
+# pretrained instruction features (one-hot codes).
+ABLATIONS = {"no_history": {"use_history": False}, "averaged_instruction": {"instruction_as_sequence": False},
+             "no_ex": {"use_column_embeddings": False}, "no_ex_ey": {"use_position_embeddings": False},
+             "one_hot": {"text_encoder": "one_hot"}}
 # Windows ending at every frame and the 7-channel CNN stem (HiveformerConfig fields), with the compiled CPU loops.
 RECIPE = {"whole_episodes": False, "stem_point_cloud": True, "cpu_kernels": True}
 # `make reference-unseen`: windows ending at every frame, the authors' 4-channel CNN stem, the plugin's instruction
@@ -169,14 +180,14 @@ def train_command(dataset_root: Path, output_dir: Path, steps: int = REFERENCE_S
 
 def hiveformer_run_command(args: argparse.Namespace, dataset_root: Path, output_dir: Path) -> list[str]:
     """The run's HiveFormer `lerobot-train` command: the reference configuration, `make reference`'s pinned
-    recipe (tower: with the learning rate annealed from 2e-3; with --unseen, `make reference-unseen`'s), then each
-    --train-arg replacing the setting of its key."""
+    recipe (tower: with the learning rate annealed from 2e-3; with --unseen, `make reference-unseen`'s), the
+    --ablation's settings, then each --train-arg replacing the setting of its key."""
     command = train_command(dataset_root, output_dir, args.steps, args.batch_size, args.text_encoder,
                             args.n_history, save_freq=save_interval(args.steps, args.curve))
     recipe = (SUITE_RECIPE if args.suite else UNSEEN_RECIPE if args.unseen else TOWER_RECIPE if args.task == "tower"
               else SEEN_RECIPE)
     command += policy_flags(recipe)
-    return with_arguments(command, args.train_arg)
+    return with_arguments(with_arguments(command, policy_flags(ABLATIONS.get(args.ablation, {}))), args.train_arg)
 
 
 def act_train_command(dataset_root: Path, output_dir: Path, steps: int, batch_size: int,
@@ -327,8 +338,8 @@ def parse_arguments(argv=None) -> argparse.Namespace:
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--policy", choices=sorted(PRESETS), default="hiveformer",
                         help="hiveformer on the keyframe export, or act on the dense export (default: hiveformer)")
-    parser.add_argument("--out", type=Path, help="run folder, resumed if present (default: outputs/reference; "
-                        "outputs/reference_tower, outputs/reference_act)")
+    parser.add_argument("--out", type=Path, help="run folder, resumed if present (default: outputs/reference, with "
+                        "_tower, _act, _<SUITE>, _unseen, _tower_unseen or _unseen_<ABLATION> after it)")
     parser.add_argument("--task", choices=sorted(TASK_VARIATIONS), default="push_buttons",
                         help="push_buttons (default) or tower (HiveFormer only)")
     parser.add_argument("--suite", choices=[*sorted(SUITES), *sorted(TASKS)], metavar="SUITE_OR_TASK",
@@ -338,12 +349,18 @@ def parse_arguments(argv=None) -> argparse.Namespace:
                         f"ten_tasks); {SUITE['episodes_per_variation']} episodes a task, {SUITE['steps']} steps, "
                         f"{SUITE['curve']} checkpoints validated on {SUITE['validation_episodes']} scenes a task, the best "
                         f"evaluated on {SUITE['eval_episodes']} new scenes a task; results in Table 1's layout")
-    parser.add_argument("--unseen", action="store_true", help="push_buttons built to follow unseen instructions: "
+    parser.add_argument("--unseen", action="store_true", help="push_buttons (or --task tower: `make "
+                        "reference-tower-unseen`) built to follow unseen instructions: "
                         f"the paper's train variations 0-99, {UNSEEN['episodes_per_variation']} episodes each, MiniLM's "
                         f"word-piece instruction features, {UNSEEN['steps']} steps at a learning rate of "
                         f"{UNSEEN_RECIPE['optimizer_lr']:g} annealed to 0 over the last 3/8 with the pixel attention's "
                         f"cross-entropy beside the position loss, a learning curve of {UNSEEN['curve']} checkpoints, seen and "
                         "unseen-synthetic success; test episodes on the test variations of the authors' human sentences")
+    parser.add_argument("--ablation", choices=sorted(ABLATIONS), help="with --unseen: the same run with one part of "
+                        "the model taken out, one of the paper's ablation rows (no_history, averaged_instruction: the "
+                        "instruction's features averaged into one token, no_ex: without the patch-column embedding, "
+                        "no_ex_ey: without both patch-position embeddings, one_hot: one-hot instruction codes); "
+                        "default folder outputs/reference_unseen_<NAME>")
     parser.add_argument("--train-variations", type=int, help="with --unseen: the paper's train variations "
                         "0..N-1 (default: 100)")
     parser.add_argument("--human-instructions", type=Path, metavar="FILE", help="with --unseen: human-written "
@@ -398,9 +415,17 @@ def parse_arguments(argv=None) -> argparse.Namespace:
                      "--policy, --task, --unseen, --variation, --extra-episodes, --test-episodes, --human-instructions")
     if args.policy != "hiveformer" and args.task != "push_buttons":
         parser.error(f"--task {args.task}: the {args.policy} reference run is push_buttons only")
-    if args.unseen and (args.policy != "hiveformer" or args.task != "push_buttons"):
-        parser.error("--unseen is the HiveFormer push_buttons run on the paper's train variations: without --policy "
-                     "or --task")
+    if args.unseen and args.policy != "hiveformer":
+        parser.error("--unseen is the HiveFormer run on the paper's train variations: without --policy")
+    if args.ablation and (not args.unseen or args.task != "push_buttons"):
+        parser.error(f"--ablation {args.ablation}: one of the paper's ablation rows, measured against `make "
+                     "reference-unseen`: only with --unseen, on push_buttons")
+    if args.ablation:  # the run is filed as the ablation: nothing may set its settings back
+        ablated = {flag.split("=", 1)[0] for flag in policy_flags(ABLATIONS[args.ablation])}
+        undone = [a for a in args.train_arg if a.split("=", 1)[0] in ablated]
+        if undone or (args.ablation == "one_hot" and args.text_encoder not in (None, "one_hot")):
+            parser.error(f"--ablation {args.ablation}: {undone[0] if undone else '--text-encoder'} would undo it")
+        args.text_encoder = ABLATIONS[args.ablation].get("text_encoder", args.text_encoder)
     if args.unseen and args.variation:
         outside = [v for v in args.variation if not (v.isdigit() and int(v) < 100)]
         if outside or args.train_variations is not None:
@@ -427,8 +452,9 @@ def parse_arguments(argv=None) -> argparse.Namespace:
                      "without --unseen")
     if args.extra_episodes is None:
         args.extra_episodes = EXTRA_EPISODES[args.task] if seen_run else 0
-    defaults = ({"text_encoder": REFERENCE_TEXT_ENCODER} | PRESETS[args.policy] | (UNSEEN if args.unseen else {})
-                | (TOWER if args.task == "tower" else {}) | (SUITE | {"test_episodes": 0} if args.suite else {}))
+    defaults = ({"text_encoder": REFERENCE_TEXT_ENCODER} | PRESETS[args.policy]
+                | (UNSEEN if args.unseen else TOWER if args.task == "tower" else {})
+                | (SUITE | {"test_episodes": 0} if args.suite else {}))
     for name, value in defaults.items():
         if name != "variations" and getattr(args, name, None) is None:
             setattr(args, name, value)
@@ -444,9 +470,17 @@ def parse_arguments(argv=None) -> argparse.Namespace:
         args.variations = {task: str(get_task(task).split_variations("train")[0].id)
                            for task in SUITES.get(args.suite, (args.suite,))}
     if args.unseen and not args.variation:
-        paper_train_ids = [str(v.id) for v in get_task("push_buttons").split_variations("train")]  # 0-99
+        paper_train_ids = [str(v.id) for v in get_task(args.task).split_variations("train")]  # 0-99
         args.variations = paper_train_ids[:args.train_variations]
     return args
+
+
+def default_out(args: argparse.Namespace) -> Path:
+    """The run's folder when --out names none: outputs/reference with what sets the run apart after it."""
+    suffix = ("_act" if args.policy != "hiveformer" else f"_{args.suite}" if args.suite
+              else "_tower" if args.task == "tower" else "")
+    suffix += ("_unseen" + (f"_{args.ablation}" if args.ablation else "")) if args.unseen else ""
+    return Path("outputs/reference" + suffix)
 
 
 def default_curve(steps: int) -> int:
@@ -528,12 +562,10 @@ def generate_test_command(args: argparse.Namespace) -> list[str] | None:
 
 def main(argv=None) -> int:
     args = parse_arguments(argv)
-    if args.unseen and (note := composability_note(args.variations)):
+    if args.unseen and args.task == "push_buttons" and (note := composability_note(args.variations)):
         print(note, flush=True)
     dense = args.policy != "hiveformer"
-    suffix = ("_act" if dense else f"_{args.suite}" if args.suite else "_unseen" if args.unseen else ""
-              if args.task == "push_buttons" else "_tower")
-    out = args.out or Path("outputs/reference" + suffix)
+    out = args.out or default_out(args)
     out.mkdir(parents=True, exist_ok=True)
     timings: dict = {}
     began = time.time()
@@ -585,7 +617,9 @@ def main(argv=None) -> int:
 
     results = json.loads((evaluation / "results.json").read_text())
     train_log = out / "train.log"
-    summary = {"configuration": vars(args) | {"out": str(out),
+    summary = {"command": shlex.join(["python", "-m", "demo_factory.tools.reference_run",
+                                      *(sys.argv[1:] if argv is None else argv)]),
+               "configuration": vars(args) | {"out": str(out),
                                               **({"dense_fps": DENSE_FPS, "action_space": "joints"} if dense else {})},
                "stage_seconds": timings, "train_step": train_log_timings(train_log.read_text() if train_log.exists() else ""), "wall_seconds_this_invocation": round(time.time() - began, 1),
                "learning_curve": curve, "selected_step": chosen,

@@ -8,6 +8,7 @@ lives in one place.
     python -m demo_factory.tools.runs add outputs/reference/reference_run.json --note "..."   # append a run
     python -m demo_factory.tools.runs table              # print the README's results table
     python -m demo_factory.tools.runs table --write README.md   # replace it between the README's markers
+    python -m demo_factory.tools.runs ablations --write docs/reference/unseen.md   # the paper's ablation rows
 """
 
 from __future__ import annotations
@@ -35,6 +36,8 @@ SPLIT_COLUMNS = {"seen": "train", "unseen_synthetic": "test_unseen_synthetic",
                  "unseen_human": "test_unseen_human"}
 STATUSES = ("completed", "stopped", "failed")
 BEGIN, END = "<!-- results table: python -m demo_factory.tools.runs table --write README.md -->", "<!-- end of results table -->"
+ABLATION_BEGIN = "<!-- ablation table: python -m demo_factory.tools.runs ablations --write docs/reference/unseen.md -->"
+ABLATION_END = "<!-- end of ablation table -->"
 
 
 @dataclass(frozen=True)
@@ -47,16 +50,26 @@ class Recipe:
     paper_figures: tuple[str, ...] = ()  # seen, unseen synthetic, corrupted, paraphrased, human (%)
 
 
+TOWER_PAPER = ("HiveFormer paper, CLIP (tower)", ("77.4", "56.2", "53.6", "", "24.1"))
+# The README shows a paper row once, under the first recipe of its task that has current runs.
 RECIPES = {
     "make reference": Recipe("push_buttons, 3 seen variations, one-hot", "docs/reference/push_buttons.md"),
     "make reference-unseen": Recipe("push_buttons, 100 variations, MiniLM", "docs/reference/unseen.md",
                                     "HiveFormer paper, CLIP (push buttons)", ("100", "86.3", "85.6", "", "74.2")),
-    "make reference-tower": Recipe("tower, 3 seen variations, one-hot", "docs/reference/tower.md",
-                                   "HiveFormer paper, CLIP (tower)", ("77.4", "56.2", "53.6", "", "24.1")),
+    "make reference-tower-unseen": Recipe("tower, 100 variations, MiniLM", "docs/reference/tower.md", *TOWER_PAPER),
+    "make reference-tower": Recipe("tower, 3 seen variations, one-hot", "docs/reference/tower.md", *TOWER_PAPER),
     "make reference-suite": Recipe("ten_tasks, one variation a task, one-hot", "docs/reference/suite.md",
                                    "HiveFormer paper, multi-task (Table 1)", ("83.3", "", "", "", "")),
     "make reference-act": Recipe("ACT, 1 push_buttons variation, dense", "docs/reference/act.md"),
 }
+
+
+# The paper's ablation rows that `reference_run --unseen --ablation NAME` measures against `make reference-unseen`; their
+# rows' recipe is `ablation NAME`.
+ABLATION_ROWS = {"no_history": "without history", "averaged_instruction": "instruction averaged (Avg.)",
+                 "no_ex": "without E_x", "no_ex_ey": "without E_x and E_y", "one_hot": "one-hot instructions"}
+ABLATION_RECIPES = {f"ablation {name}": label for name, label in ABLATION_ROWS.items()}
+ABLATION_SPLITS = ("seen", "unseen_synthetic", "unseen_corrupted", "unseen_human")
 
 
 def read_runs(path: Path = RUNS) -> list[dict[str, str]]:
@@ -67,8 +80,9 @@ def read_runs(path: Path = RUNS) -> list[dict[str, str]]:
             raise UsageError(f"{path}: columns {reader.fieldnames} are not {list(COLUMNS)}")
         rows = list(reader)
     for line, row in enumerate(rows, start=2):
-        if row["recipe"] not in (*RECIPES, "experiment"):
-            raise UsageError(f"{path}:{line}: recipe {row['recipe']!r} is none of {[*RECIPES, 'experiment']}")
+        if row["recipe"] not in (*RECIPES, *ABLATION_RECIPES, "experiment"):
+            raise UsageError(f"{path}:{line}: recipe {row['recipe']!r} is none of "
+                             f"{[*RECIPES, *ABLATION_RECIPES, 'experiment']}")
         if row["status"] not in STATUSES or row["current"] not in ("0", "1"):
             raise UsageError(f"{path}:{line}: status {row['status']!r} (accepted: {', '.join(STATUSES)}) or "
                              f"current {row['current']!r} (accepted: 0, 1)")
@@ -93,38 +107,71 @@ def _span(values: list[str]) -> str:
     return f"{numbers[0]}" if numbers[0] == numbers[-1] else f"{numbers[0]}–{numbers[-1]}"
 
 
+def _current_runs(rows: list[dict[str, str]], recipe: str) -> list[dict[str, str]]:
+    """The recipe's rows marked current, the default seed first."""
+    return sorted((row for row in rows if row["recipe"] == recipe and row["current"] == "1"),
+                  key=lambda row: (int(row["seed"]) != 1000, int(row["seed"])))
+
+
 def results_table(rows: list[dict[str, str]]) -> str:
     """The README's results table: a row per reference command from its `current` runs (the default seed first),
     success in % per split over the seeds, and the paper's row for the same task below it."""
     lines = ["| command | trains | seeds | seen | unseen synthetic | corrupted | held-out phrasings | human | wall (min) |",
              "|---|---|---|---|---|---|---|---|---|"]
+    shown = set()
     for name, recipe in RECIPES.items():
-        current = [row for row in rows if row["recipe"] == name and row["current"] == "1"]
+        current = _current_runs(rows, name)
         if not current:
             continue
-        current.sort(key=lambda row: (int(row["seed"]) != 1000, int(row["seed"])))
         figures = " | ".join(_figures(current, column) for column in SPLIT_COLUMNS)
         lines.append(f"| [`{name}`]({recipe.page}) | {recipe.trains} | {' / '.join(row['seed'] for row in current)} "
                      f"| {figures} | {_span([row['wall_min'] for row in current])} |")
-        if recipe.paper:
+        if recipe.paper and recipe.paper not in shown:
             lines.append(f"| *{recipe.paper}* | | | {' | '.join(recipe.paper_figures)} | |")
+            shown.add(recipe.paper)
     return "\n".join(lines)
+
+
+def ablation_table(rows: list[dict[str, str]]) -> str:
+    """The paper's ablation rows for push buttons: `make reference-unseen` (the full model) and each ablation row from
+    their `current` runs (success in % per split over the seeds, `not run` where none is), the paper's row below ours
+    where the paper's figures are recorded here."""
+    full = RECIPES["make reference-unseen"]
+    lines = ["| model | command | seeds | seen | unseen synthetic | corrupted | human |", "|---|---|---|---|---|---|---|"]
+    for recipe, label, command in [("make reference-unseen", "full model", "make reference-unseen"),
+                                   *((f"ablation {name}", label, f"reference_run --unseen --ablation {name}")
+                                     for name, label in ABLATION_ROWS.items())]:
+        current = _current_runs(rows, recipe)
+        figures = (" | ".join(_figures(current, column) for column in ABLATION_SPLITS) if current
+                   else " | ".join(["not run"] * len(ABLATION_SPLITS)))
+        lines.append(f"| {label} | `{command}` | {' / '.join(row['seed'] for row in current) or '—'} | {figures} |")
+        if recipe == "make reference-unseen":
+            paper = dict(zip(SPLIT_COLUMNS, full.paper_figures))
+            lines.append(f"| *{full.paper}* | | | {' | '.join(paper[column] for column in ABLATION_SPLITS)} |")
+    return "\n".join(lines)
+
+
+def marked_table(text: str, begin: str = BEGIN, end: str = END) -> str:
+    """The table as it stands between a page's markers."""
+    if begin not in text or end not in text:
+        raise UsageError(f"no table between {begin!r} and {end!r}")
+    return text.split(begin, 1)[1].split(end, 1)[0].strip("\n")
 
 
 def readme_table(readme: str) -> str:
     """The results table as it stands between the README's markers."""
-    if BEGIN not in readme or END not in readme:
-        raise UsageError(f"the README has no results table between {BEGIN!r} and {END!r}")
-    return readme.split(BEGIN, 1)[1].split(END, 1)[0].strip("\n")
+    return marked_table(readme)
 
 
-def write_table(readme_path: Path, rows: list[dict[str, str]]) -> bool:
-    """Replace the README's results table with the one built from `rows`; True when it changed."""
-    readme = readme_path.read_text()
-    old, new = readme_table(readme), results_table(rows)
+def write_table(path: Path, rows: list[dict[str, str]], ablations: bool = False) -> bool:
+    """Replace the page's results table (`ablations`: its ablation table) with the one built from `rows`; True when
+    it changed."""
+    begin, end, table = (ABLATION_BEGIN, ABLATION_END, ablation_table) if ablations else (BEGIN, END, results_table)
+    text = path.read_text()
+    old, new = marked_table(text, begin, end), table(rows)
     if old != new:
-        before, rest = readme.split(BEGIN, 1)
-        readme_path.write_text(f"{before}{BEGIN}\n{new}\n{END}{rest.split(END, 1)[1]}")
+        before, rest = text.split(begin, 1)
+        path.write_text(f"{before}{begin}\n{new}\n{end}{rest.split(end, 1)[1]}")
     return old != new
 
 
@@ -149,16 +196,21 @@ def run_row(summary: dict, note: str, recipe: str | None = None, status: str = "
     splits = summary["results"]["splits"]
     if recipe is None:
         recipe = ("make reference-act" if config.get("policy") == "act" else "make reference-suite"
-                  if config.get("suite") else "make reference-unseen" if config.get("unseen")
+                  if config.get("suite") else f"ablation {config['ablation']}" if config.get("ablation")
+                  else "make reference-tower-unseen" if config.get("unseen") and config.get("task") == "tower"
+                  else "make reference-unseen" if config.get("unseen")
                   else "make reference-tower" if config.get("task") == "tower" else "make reference")
-    command = ["python -m demo_factory.tools.reference_run"]
-    command += [f"--suite {config['suite']}"] if config.get("suite") else []
-    command += [f"--task {config['task']}"] if config.get("task", "push_buttons") != "push_buttons" else []
-    command += ["--unseen"] if config.get("unseen") else []
-    command += [f"--policy {config['policy']}"] if config.get("policy", "hiveformer") != "hiveformer" else []
-    command += [f"--perturb {config['perturb']}"] if config.get("perturb") else []
-    command += ["--robustness"] if config.get("robustness") else []
-    command += [f"--seed {config['seed']}", *(f"--train-arg={arg}" for arg in config.get("train_arg") or [])]
+    # The command as it was typed; a summary written before it was recorded gives the options that name the recipe.
+    command = [summary.get("command") or "python -m demo_factory.tools.reference_run"]
+    if "command" not in summary:
+        command += [f"--suite {config['suite']}"] if config.get("suite") else []
+        command += [f"--task {config['task']}"] if config.get("task", "push_buttons") != "push_buttons" else []
+        command += ["--unseen"] if config.get("unseen") else []
+        command += [f"--policy {config['policy']}"] if config.get("policy", "hiveformer") != "hiveformer" else []
+        command += [f"--ablation {config['ablation']}"] if config.get("ablation") else []
+        command += [f"--perturb {config['perturb']}"] if config.get("perturb") else []
+        command += ["--robustness"] if config.get("robustness") else []
+        command += [f"--seed {config['seed']}", *(f"--train-arg={arg}" for arg in config.get("train_arg") or [])]
     step = summary.get("train_step", {}).get("updt_s")
     return {
         "date": datetime.date.today().isoformat(), "commit": _git_commit(), "command": " ".join(command),
@@ -188,10 +240,13 @@ def main(argv: list[str] | None = None) -> int:
     add = commands.add_parser("add", help="append a reference run from its reference_run.json")
     add.add_argument("summary", type=Path, help="OUT/reference_run.json of a finished reference run")
     add.add_argument("--note", required=True, help="what the run varied or showed, in one phrase")
-    add.add_argument("--recipe", choices=[*RECIPES, "experiment"],
+    add.add_argument("--recipe", choices=[*RECIPES, *ABLATION_RECIPES, "experiment"],
                      help="default: the reference command the run's options name; `experiment` for variants")
     table = commands.add_parser("table", help="print the README's results table, built from the current runs")
     table.add_argument("--write", type=Path, metavar="README", help="replace the table between the README's markers")
+    ablations = commands.add_parser("ablations", help="print the paper's ablation rows, built from the "
+                                    "current runs of `make reference-unseen` and `reference_run --unseen --ablation`")
+    ablations.add_argument("--write", type=Path, metavar="PAGE", help="replace the table between the page's markers")
     args = parser.parse_args(argv)
     try:
         if args.command == "add":
@@ -205,10 +260,11 @@ def main(argv: list[str] | None = None) -> int:
             add_run(args.runs, row)
             print(f"added to {args.runs}: {row['command']} ({row['date']}, seen {row['seen']} %)")
         elif args.write:
-            changed = write_table(args.write, read_runs(args.runs))
-            print(f"{args.write}: results table {'rewritten' if changed else 'already up to date'}")
+            changed = write_table(args.write, read_runs(args.runs), args.command == "ablations")
+            print(f"{args.write}: {'ablation' if args.command == 'ablations' else 'results'} table "
+                  f"{'rewritten' if changed else 'already up to date'}")
         else:
-            print(results_table(read_runs(args.runs)))
+            print((ablation_table if args.command == "ablations" else results_table)(read_runs(args.runs)))
     except UsageError as error:
         print(f"error: {error}", file=sys.stderr)
         return error.exit_code

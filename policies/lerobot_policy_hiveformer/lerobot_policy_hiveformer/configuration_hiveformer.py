@@ -73,6 +73,8 @@ class HiveformerConfig(PreTrainedConfig):
 
     # Ablation: False adds no learned patch-position embeddings (E_T^x, E_T^y) to the visual tokens.
     use_position_embeddings: bool = True
+    # Ablation: False leaves out the patch-column embedding E_T^x alone (the row embedding E_T^y stays).
+    use_column_embeddings: bool = True
     # True feeds the CNN stem the world xyz of every pixel besides RGB and the gripper mark (7 channels,
     # this plugin's input before the authors' 4 became the default); either way every visual token also
     # gets its patch's mean point.

@@ -301,7 +301,8 @@ class HiveformerModel(nn.Module):
         self.source_embedding = nn.Embedding(self.num_cameras + 1, dim)
         if config.use_position_embeddings:
             self.patch_row_embedding = nn.Embedding(self.grid[0], dim)
-            self.patch_col_embedding = nn.Embedding(self.grid[1], dim)
+            if config.use_column_embeddings:
+                self.patch_col_embedding = nn.Embedding(self.grid[1], dim)
         self.layers = nn.ModuleList([BlockCausalLayer(config) for _ in range(config.num_layers)])
 
         self.decoder = UNetDecoder(dim, ops.group_norm_leaky_relu, ops.bilinear_upsample)
@@ -343,9 +344,10 @@ class HiveformerModel(nn.Module):
         visual = patch_tokens.new_zeros(batch, steps, *patch_tokens.shape[1:])  # (B, T, C, h*w, D)
         visual = visual.index_put((encode,), patch_tokens)
         if self.config.use_position_embeddings:
-            rows = self.patch_row_embedding.weight[:, None, :].expand(-1, self.grid[1], -1)
-            cols = self.patch_col_embedding.weight[None, :, :].expand(self.grid[0], -1, -1)
-            visual = visual + (rows + cols).flatten(0, 1)
+            position = self.patch_row_embedding.weight[:, None, :].expand(-1, self.grid[1], -1)
+            if self.config.use_column_embeddings:
+                position = position + self.patch_col_embedding.weight[None, :, :]
+            visual = visual + position.flatten(0, 1)
         visual = visual + self.source_embedding.weight[:cameras, None, :]
         gripper_token = self.gripper_to_token(obs.gripper) + self.source_embedding.weight[cameras]  # (B,T,D)
         tokens = torch.cat([visual.flatten(2, 3), gripper_token.unsqueeze(2)], dim=2)  # (B, T, N, D)
