@@ -234,7 +234,8 @@ def build_parser() -> argparse.ArgumentParser:
     gen.add_argument("--perturb", metavar="NAME[=P],...",
                      help="domain randomisation: each episode gets each named perturbation with probability P "
                           "(default 0.5), drawn from its seed and recorded in its metadata; `all` names every one "
-                          "that applies to the task (docs/robustness.md lists them)")
+                          "that applies to the task, `visual`, `shape` or `event` those of a kind (docs/robustness.md "
+                          "lists them)")
     gen.add_argument("--shard", type=shard, help="run only shard i/N of the job (the shards' union is the job)")
     gen.add_argument("--executor", choices=EXECUTORS, default="process",
                      help="process: --workers local processes (default); ray: the same episodes on a Ray cluster "

@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 
 import numpy as np
+import pybullet as p
 import pytest
 
 from demo_factory.cli import main
@@ -21,11 +22,13 @@ from demo_factory.rollout.perturbations import (
 )
 from demo_factory.sim import DEFAULT_CAMERAS
 from demo_factory.tasks import TASKS, get_task
+from demo_factory.tasks.push_buttons import KEYFRAMES_PER_PRESS
 
 SIZE = (48, 48)
-# Each factor on two to three tasks, so that every task meets some factor (lookalike where it applies).
+VISUAL = [name for name, factor in PERTURBATIONS.items() if factor.kind == "visual"]
+# Each visual factor on two to three tasks, so that every task meets some factor (lookalike where it applies).
 FACTOR_TASKS = {"lookalike": ["push_buttons", "tower", "reach_and_drag"]}
-_OTHERS = [name for name in PERTURBATIONS if name != "lookalike"]
+_OTHERS = [name for name in VISUAL if name != "lookalike"]
 FACTOR_TASKS |= {name: [t for k, t in enumerate(t for t in TASKS if t not in FACTOR_TASKS["lookalike"])
                         if k % len(_OTHERS) == i] for i, name in enumerate(_OTHERS)}
 
@@ -34,7 +37,7 @@ def test_every_task_meets_some_factor():
     assert set(TASKS) <= {t for tasks in FACTOR_TASKS.values() for t in tasks}
 
 
-@pytest.mark.parametrize("factor", list(PERTURBATIONS))
+@pytest.mark.parametrize("factor", VISUAL)
 def test_each_factor_is_visible_and_leaves_the_expert_alone(factor):
     """The start renders differ from the unperturbed ones; the expert's keyframes are the same and it succeeds."""
     for name in FACTOR_TASKS[factor]:
@@ -54,6 +57,85 @@ def test_each_factor_is_visible_and_leaves_the_expert_alone(factor):
         assert keyframes[0] == keyframes[1], f"{factor} changed {name}'s expert keyframes"
         outcome = run_episode(EpisodeRequest(name, "train", variation.id, 5, SIZE, perturbations=(factor,)), None)
         assert outcome.kept, f"the expert failed {name} under {factor}: {outcome.reason}"
+
+
+def visible_change(name: str, variation_id: int, factor: str, size=SIZE) -> int:
+    """Pixels of the start views (mid-episode changes made) that a factor changes visibly, in the camera it
+    changes most."""
+    plain = start_views(name, variation_id, 5, (), size)
+    perturbed = start_views(name, variation_id, 5, (factor,), size)
+    return max(int((np.abs(plain[c].astype(int) - perturbed[c]).sum(-1) > 12).sum()) for c in plain)
+
+
+def two_presses(task_name: str = "push_buttons"):
+    return next(v for v in get_task(task_name).split_variations("train") if len(v.words) == 2)
+
+
+SHAPE_SEEDS = range(3)
+
+
+@pytest.mark.parametrize("factor", [name for name, f in PERTURBATIONS.items() if f.kind == "shape"])
+def test_each_shape_factor_is_visible_and_the_expert_follows_it(factor):
+    """Every task a size or shape factor applies to: visibly changed, and the expert succeeds on every seed tried
+    (its keyframes follow the resized objects)."""
+    names = [name for name in TASKS if PERTURBATIONS[factor].refusal(get_task(name)) is None]
+    assert len(names) >= 2
+    for name in names:
+        variation = two_presses() if name == "push_buttons" else get_task(name).split_variations("train")[0]
+        # At the reference runs' 64 x 64 (a 12 % smaller block is 7 pixels at 48 x 48).
+        assert visible_change(name, variation.id, factor, (64, 64)) >= 8, f"{factor} on {name} is not visible"
+        for seed in SHAPE_SEEDS:
+            request = EpisodeRequest(name, "train", variation.id, seed, SIZE, perturbations=(factor,))
+            outcome = run_episode(request, None)
+            assert outcome.kept, f"the expert failed {name} under {factor}, seed {seed}: {outcome.reason}"
+
+
+def test_object_size_resizes_and_the_expert_follows():
+    task = get_task("tower")
+    variation = task.split_variations("train")[0]
+    world = start_scene(task, variation, 5, DEFAULT_CAMERAS, SIZE, ("object_size",))
+    try:
+        scale = world.perturbations["object_size"]["scale"]
+        assert 0.75 <= scale <= 1.25 and abs(scale - 1) >= 0.12 and abs(task.cube - 0.045 * scale) < 1e-4
+        low, high = p.getAABB(task.cubes[variation.words[0]], physicsClientId=world.client)
+        assert abs((high[2] - low[2]) - task.cube) < 2e-3
+        keyframes = [k.pose[2] for k in task.expert(world)]  # per cube: above, grasp, lift, above, place, retreat
+        assert abs(keyframes[1] - task.cube / 2) < 1e-3  # grasped at its middle
+        assert abs((keyframes[10] - keyframes[4]) - task.cube) < 1e-3  # the second cube placed one cube higher
+    finally:
+        world.close()
+
+
+@pytest.mark.parametrize("factor", [name for name, f in PERTURBATIONS.items() if f.kind == "event"])
+def test_each_event_factor_happens_after_the_first_press(factor, tmp_path):
+    """Nothing changes before the first press; after it the scene changes (visibly, in the preview), the expert
+    follows a moved button and succeeds, and a 1-press variation or another task is left alone or refused."""
+    variation = two_presses()
+    task = get_task("push_buttons")
+    world = start_scene(task, variation, 5, DEFAULT_CAMERAS, SIZE, (factor,))
+    try:
+        drawn = world.perturbations[factor]
+        assert None not in drawn.values()
+        before = {c: tuple(v) for c, v in task.positions.items()}
+        world.step(240)  # no press yet: nothing happens
+        assert {c: tuple(v) for c, v in task.positions.items()} == before and world.scene_changes == 0
+    finally:
+        world.close()
+    assert visible_change("push_buttons", variation.id, factor) >= 8
+    outcome = run_episode(EpisodeRequest("push_buttons", "train", variation.id, 5, SIZE, perturbations=(factor,)),
+                          tmp_path)
+    assert outcome.kept, f"the expert failed push_buttons under {factor}: {outcome.reason}"
+    if factor == "moved_target":
+        keyframes = [k.target_pose[:2] for k in read_episode(outcome.path).keyframes]
+        second = variation.words[1]
+        pressed = keyframes[KEYFRAMES_PER_PRESS + 2]  # the second button's press
+        assert np.allclose(pressed, drawn["to"], atol=1e-3) and not np.allclose(pressed, before[second], atol=0.05)
+    one_press = next(v for v in task.variations if len(v.words) == 1)  # none among the train variations
+    world = start_scene(get_task("push_buttons"), one_press, 5, DEFAULT_CAMERAS, SIZE, (factor,))
+    assert None in world.perturbations[factor].values()
+    world.close()
+    with pytest.raises(ValueError, match=f"{factor}' does not apply to push_button: push_button has no sequence"):
+        parse_perturbations(factor, get_task("push_button"))
 
 
 def test_draws_are_seeded_and_recorded(tmp_path):
@@ -93,6 +175,11 @@ def test_names_are_checked():
     assert parse_perturbations("lighting, occluder") == ("lighting", "occluder")
     assert "lookalike" not in parse_perturbations("all", get_task("slide_block_to_target"))
     assert "lookalike" not in parse_perturbations("all", get_task("open_drawer"))  # a drawer of a chest
+    assert parse_perturbations("visual", get_task("tower")) == tuple(VISUAL)
+    assert parse_perturbations("shape", get_task("pick_and_lift")) == ("object_size",)
+    assert parse_perturbations("event", get_task("push_buttons")) == ("moved_target", "same_colour")
+    with pytest.raises(ValueError, match="no event perturbation .moved_target, same_colour. applies to open_drawer"):
+        parse_perturbations("event", get_task("open_drawer"))
     assert parse_perturb_option("lighting=0.25,occluder") == {"lighting": 0.25, "occluder": 0.5}
     with pytest.raises(ValueError, match="unknown perturbation 'fog'; accepted: lighting"):
         parse_perturbations("fog")

@@ -69,7 +69,8 @@ def add_parser(commands) -> argparse.ArgumentParser:
     parser.add_argument("--perturb", metavar="NAME,...",
                         help="also evaluate every split under each named perturbation, one at a time, on the same "
                              "scenes: a robustness table beside the unperturbed figures and a contact sheet per "
-                             "factor; `all`: every one that applies (docs/robustness.md)")
+                             "factor; `all`: every one that applies; `visual`, `shape`, `event`: those of a kind "
+                             "(docs/robustness.md)")
     parser.add_argument("--record", action="store_true", help="also record every rollout to MCAP under OUT/rollouts")
     parser.add_argument("--out", required=True, help="output folder")
     parser.add_argument("--overwrite", action="store_true", help="replace an existing output folder")

@@ -44,7 +44,7 @@ from demo_factory.convert.features import (
 from demo_factory.planning import JointPlanner
 from demo_factory.sim import DEFAULT_CAMERAS, Kinematics, World
 from demo_factory.sim.world import JOINT_LOWER, JOINT_UPPER, TIME_STEP
-from demo_factory.rollout import KeyframeExecutor, observe, start_scene
+from demo_factory.rollout import ExpertKeyframes, KeyframeExecutor, observe, start_scene
 from demo_factory.tasks import get_task
 
 DEFAULT_STEP_SLACK = 2
@@ -143,7 +143,7 @@ class _TaskEnv(gym.Env):
         self.task_description = episode.instruction
         self._close_world()
         self.world, self.sim_task = episode_world(episode, self.image_size)
-        self.expert_keyframes = self.sim_task.expert(self.world)
+        self.expert_keyframes = ExpertKeyframes(self.sim_task, self.world)
         self.steps = 0
 
     def render(self):

@@ -16,7 +16,7 @@ import numpy as np
 from demo_factory.convert.features import ACTION_SIZE, observation_item, robot_action
 from demo_factory.planning import JointPlanner
 from demo_factory.record import RobotState
-from demo_factory.rollout import KeyframeExecutor
+from demo_factory.rollout import ExpertKeyframes, KeyframeExecutor
 
 
 class ExpertPolicy:
@@ -58,8 +58,9 @@ def expert_trajectory(env) -> list[RobotState]:
         record(world)
         world.step_callbacks.append(record)
         executor = KeyframeExecutor(world, env.kinematics, JointPlanner(), env.episode.seed, task.graspable_bodies())
-        for transition, target in enumerate(task.expert(world), start=1):
-            if not executor.execute(target, transition).ok:
+        targets = ExpertKeyframes(task, world)
+        for transition in range(1, len(targets) + 1):
+            if not executor.execute(targets[transition - 1], transition).ok:
                 break
     finally:
         world.close()

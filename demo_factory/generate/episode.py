@@ -16,7 +16,7 @@ import numpy as np
 
 from demo_factory.planning import JointPlanner
 from demo_factory.record import FORMAT_VERSION, EpisodeInfo, EpisodeWriter, Keyframe, library_versions
-from demo_factory.rollout import SETTLE_AFTER_STEPS, KeyframeExecutor, observe, start_scene
+from demo_factory.rollout import SETTLE_AFTER_STEPS, ExpertKeyframes, KeyframeExecutor, observe, start_scene
 from demo_factory.sim import DEFAULT_CAMERAS, World
 from demo_factory.sim.kinematics import shared_kinematics
 from demo_factory.tasks import SPLITS, get_task
@@ -105,10 +105,11 @@ def run_episode(request: EpisodeRequest, out_dir: str | Path | None) -> EpisodeO
         start_pose = world.gripper_pose()
         record_keyframe(0, start_pose, world.gripper_command, "start")
         executor = KeyframeExecutor(world, kinematics, JointPlanner(), request.episode_seed, task.graspable_bodies())
-        targets = task.expert(world)
+        targets = ExpertKeyframes(task, world)
         attempts_log, attempt_log, attempts_used, planning_seconds = [], [], [], []
         reason = None
-        for index, target in enumerate(targets, start=1):
+        for index in range(1, len(targets) + 1):
+            target = targets[index - 1]
             outcome = executor.execute(target, transition=index)
             if outcome.plan is not None:
                 attempts_log += outcome.plan.attempts

@@ -8,7 +8,14 @@ the planner (`demo_factory.planning`); writes nothing (recording is the caller's
 """
 
 from demo_factory.rollout.execution import KeyframeExecutor, TransitionOutcome
-from demo_factory.rollout.scene import SETTLE_AFTER_STEPS, SETTLE_BEFORE_STEPS, observe, start_scene, start_views
+from demo_factory.rollout.scene import (
+    SETTLE_AFTER_STEPS,
+    SETTLE_BEFORE_STEPS,
+    ExpertKeyframes,
+    observe,
+    start_scene,
+    start_views,
+)
 
-__all__ = ["SETTLE_AFTER_STEPS", "SETTLE_BEFORE_STEPS", "KeyframeExecutor", "TransitionOutcome", "observe",
-           "start_scene", "start_views"]
+__all__ = ["SETTLE_AFTER_STEPS", "SETTLE_BEFORE_STEPS", "ExpertKeyframes", "KeyframeExecutor", "TransitionOutcome",
+           "observe", "start_scene", "start_views"]

@@ -3,10 +3,17 @@
 Each perturbation is one documented change of what the cameras see, drawn from the episode seed (its own
 random stream, so the scene's layout is the unperturbed episode's) and applied to a built scene before it
 settles (``start_scene(..., perturbations=...)``). It returns the parameters it drew, which the recorder keeps
-in the episode's metadata (``EpisodeInfo.perturbations``). None of them touches the physics of a task object:
-the expert's keyframes and its success are the unperturbed episode's (tests/test_perturbations.py checks every
-factor). The factors are Colosseum's visual ones and the HiveFormer paper's real-robot situations (its
-Figure 4) that this simulator can show:
+in the episode's metadata (``EpisodeInfo.perturbations``). A factor is of one of three kinds:
+
+- ``visual``: it changes what the cameras see and nothing of a task object's physics; the expert's keyframes and
+  its success are the unperturbed episode's.
+- ``shape``: it sets a task's object size or shape before the scene is built (``Task.object_scale``,
+  ``PushButtons.housing_scale``); the expert's keyframes follow the objects.
+- ``event``: it changes the scene mid-episode, after the first press (a button moved or repainted); a move bumps
+  ``world.scene_changes``, and the expert looks again (``rollout.ExpertKeyframes``).
+
+tests/test_perturbations.py checks that the expert succeeds under every factor. The factors are Colosseum's and
+the HiveFormer paper's real-robot situations (its Figure 4):
 
 | name | what changes |
 |---|---|
@@ -18,6 +25,10 @@ Figure 4) that this simulator can show:
 | ``camera_pose`` | the two shoulder cameras moved by up to 4 cm and re-aimed by up to 3 cm (calibration follows) |
 | ``occluder`` | a hand-sized object between one shoulder camera and the workspace (the paper's occluded gripper) |
 | ``lookalike`` | a copy of the first object the instruction names on a free place (the paper's second object that looks like the target); not for placements and fixtures |
+| ``object_size`` | the task objects 12-25 % smaller or larger (Colosseum's object size); resizable tasks only |
+| ``taller_button`` | the buttons' housings 2.5-4 times as tall (the paper's changed object shape) |
+| ``moved_target`` | after the first press, the next instructed button moves elsewhere (the paper's moved target) |
+| ``same_colour`` | after the first press, an uninstructed button takes the pressed one's colour (two of one colour) |
 
 Objects added by a perturbation have no collision shape: they cannot block the robot or the expert, and what
 they test is the policy's vision. Perturbations compose (``lighting,distractors``); each draws from its own
@@ -40,6 +51,7 @@ import pybullet as p
 
 from demo_factory.sim.world import World
 from demo_factory.tasks import Task, Variation
+from demo_factory.tasks.push_buttons import PushButtons
 
 # Where perturbations may put objects: the part of the table the shoulder cameras see.
 FREE_AREA = ((0.25, 0.72), (-0.32, 0.32))
@@ -52,12 +64,14 @@ PERTURBATION_STREAM = 0x9E27  # keeps the perturbations' random streams apart fr
 @dataclass(frozen=True)
 class Perturbation:
     """A named change of the scene or its sensors: ``apply(world, task, variation, rng)`` returns the drawn
-    parameters (JSON-ready); ``refusal(task)`` says why it cannot apply to a task, or None."""
+    parameters (JSON-ready); ``refusal(task)`` says why it cannot apply to a task, or None; ``kind``: "visual",
+    "shape" (applied before the scene is built) or "event" (module docstring)."""
 
     name: str
     description: str
     apply: Callable[[World, Task, Variation, np.random.Generator], dict]
     refusal: Callable[[Task], str | None] = lambda task: None
+    kind: str = "visual"
 
 
 def _rgb(values) -> list[float]:
@@ -309,6 +323,76 @@ def _lookalike(world, task, variation, rng) -> dict:
     return {"copied": int(body), "xy": _rgb(point)}
 
 
+# -- object size and shape, and mid-episode changes ----------------------------------------------
+OBJECT_SCALE_CHANGE = (0.12, 0.25)  # smaller or larger by this fraction
+HOUSING_SCALE = (2.5, 4.0)
+
+
+def _resizable_refusal(task: Task) -> str | None:
+    if task.resizable:
+        return None
+    return f"{task.name}'s objects have fixed sizes (resizable tasks: {', '.join(_resizable())})"
+
+
+@cache
+def _resizable() -> tuple[str, ...]:
+    from demo_factory.tasks import TASKS
+
+    return tuple(name for name, cls in TASKS.items() if cls.resizable)
+
+
+def _object_size(world, task, variation, rng) -> dict:
+    task.object_scale = float(1 + rng.choice((-1, 1)) * rng.uniform(*OBJECT_SCALE_CHANGE))
+    return {"scale": round(task.object_scale, 4)}
+
+
+def _buttons_refusal(task: Task) -> str | None:
+    return None if isinstance(task, PushButtons) else f"{task.name} has no buttons"
+
+
+def _presses_refusal(task: Task) -> str | None:
+    if isinstance(task, PushButtons) and task.max_sequence > 1:
+        return None
+    return f"{task.name} has no sequence of presses (push_buttons has)"
+
+
+def _taller_button(world, task, variation, rng) -> dict:
+    task.housing_scale = float(rng.uniform(*HOUSING_SCALE))
+    return {"housing_scale": round(task.housing_scale, 4)}
+
+
+def after_first_press(world: World, task: PushButtons, change: Callable[[], None]) -> None:
+    """Make ``change`` once, at the physics step after the task's first press; ``world.pending_events`` holds it
+    too, so that a preview of the scene (``start_views``) can show it."""
+    made = []
+
+    def make() -> None:
+        if not made:
+            made.append(True)
+            change()
+
+    world.step_callbacks.append(lambda w: make() if task.pressed_order else None)
+    world.pending_events.append(make)
+
+
+def _moved_target(world, task, variation, rng) -> dict:
+    point = task.free_button_place(rng) if len(variation.words) > 1 else None
+    if point is None:
+        return {"moved": None}
+    colour = variation.words[1]
+    after_first_press(world, task, lambda: task.move_button(world, colour, point))
+    return {"moved": colour, "to": _rgb(point)}
+
+
+def _same_colour(world, task, variation, rng) -> dict:
+    others = [c for c in task.buttons if c not in variation.words]
+    if len(variation.words) < 2 or not others:
+        return {"repainted": None}
+    colour, pressed = others[rng.integers(len(others))], variation.words[0]
+    after_first_press(world, task, lambda: task.paint_button(world, colour, pressed))
+    return {"repainted": colour, "as": pressed}
+
+
 PERTURBATIONS: dict[str, Perturbation] = {perturbation.name: perturbation for perturbation in (
     Perturbation("lighting", "the light's direction, colour and strength", _lighting),
     Perturbation("table_colour", "the table top's colour", _table_colour),
@@ -319,20 +403,37 @@ PERTURBATIONS: dict[str, Perturbation] = {perturbation.name: perturbation for pe
     Perturbation("occluder", "a hand-sized object between a shoulder camera and the workspace", _occluder),
     Perturbation("lookalike", "a copy of the first instructed object's look elsewhere on the table", _lookalike,
                  _lookalike_refusal),
+    Perturbation("object_size", "the task objects 12-25 % smaller or larger", _object_size, _resizable_refusal,
+                 "shape"),
+    Perturbation("taller_button", "the buttons' housings 2.5-4 times as tall", _taller_button, _buttons_refusal,
+                 "shape"),
+    Perturbation("moved_target", "after the first press, the next instructed button moves", _moved_target,
+                 _presses_refusal, "event"),
+    Perturbation("same_colour", "after the first press, an uninstructed button takes the pressed one's colour",
+                 _same_colour, _presses_refusal, "event"),
 )}
 
 
+GROUPS = ("all", "visual", "shape", "event")  # names for several factors: every one, or those of a kind
+
+
 def parse_perturbations(text: str | None, task: Task | None = None) -> tuple[str, ...]:
-    """``"lighting,distractors"`` → ``("lighting", "distractors")``; ``all`` names every factor that applies to
-    ``task``. Raises ``ValueError`` naming an unknown factor, a repeated one, or one the task refuses."""
+    """``"lighting,distractors"`` → ``("lighting", "distractors")``; a group alone (``all``, or a kind: ``visual``,
+    ``shape``, ``event``) names its factors that apply to ``task``. Raises ``ValueError`` naming an unknown factor,
+    a repeated one, or one the task refuses."""
     if not text:
         return ()
     names = [n.strip() for n in text.split(",") if n.strip()]
-    if names == ["all"]:
-        return tuple(n for n, f in PERTURBATIONS.items() if task is None or f.refusal(task) is None)
+    if len(names) == 1 and names[0] in GROUPS:
+        group = [n for n, f in PERTURBATIONS.items() if names[0] in ("all", f.kind)]
+        accepted = tuple(n for n in group if task is None or PERTURBATIONS[n].refusal(task) is None)
+        if not accepted:
+            raise ValueError(f"no {names[0]} perturbation ({', '.join(group)}) applies to {task.name}")
+        return accepted
     for name in names:
         if name not in PERTURBATIONS:
-            raise ValueError(f"unknown perturbation {name!r}; accepted: {', '.join(PERTURBATIONS)} or all")
+            raise ValueError(f"unknown perturbation {name!r}; accepted: {', '.join(PERTURBATIONS)}, "
+                             f"or one of {', '.join(GROUPS)} alone")
         if names.count(name) > 1:
             raise ValueError(f"perturbation {name!r} is named twice")
         reason = PERTURBATIONS[name].refusal(task) if task is not None else None
@@ -341,13 +442,16 @@ def parse_perturbations(text: str | None, task: Task | None = None) -> tuple[str
     return tuple(names)
 
 
-def apply_perturbations(world: World, task: Task, variation: Variation, seed: int, names) -> dict:
-    """Apply the named perturbations to a built scene, each from its own stream of ``seed``: ``{name: the
-    parameters drawn}``, in the order given."""
+def apply_perturbations(world: World, task: Task, variation: Variation, seed: int, names,
+                        before_build: bool = False) -> dict:
+    """Apply the named perturbations, each from its own stream of ``seed``: ``{name: the parameters drawn}``, in
+    the order given. ``before_build``: the "shape" factors among them, to the task before its scene is built;
+    else the others, to the built scene."""
     drawn = {}
     for name in names:
-        rng = np.random.default_rng([PERTURBATION_STREAM, seed, zlib.crc32(name.encode())])
-        drawn[name] = PERTURBATIONS[name].apply(world, task, variation, rng)
+        if (PERTURBATIONS[name].kind == "shape") == before_build:
+            rng = np.random.default_rng([PERTURBATION_STREAM, seed, zlib.crc32(name.encode())])
+            drawn[name] = PERTURBATIONS[name].apply(world, task, variation, rng)
     return drawn
 
 
@@ -356,8 +460,9 @@ DEFAULT_PROBABILITY = 0.5
 
 def parse_perturb_option(text: str, task: Task | None = None) -> dict[str, float]:
     """``generate --perturb``: ``"lighting=0.3,distractors"`` → ``{"lighting": 0.3, "distractors": 0.5}`` (each
-    factor's probability, ``DEFAULT_PROBABILITY`` when not given; ``all`` or ``all=P``: every factor that applies to
-    ``task``). Raises ``ValueError`` as ``parse_perturbations`` does, or for a probability outside 0-1."""
+    factor's probability, ``DEFAULT_PROBABILITY`` when not given; a group, e.g. ``all`` or ``visual=P``: its
+    factors that apply to ``task``). Raises ``ValueError`` as ``parse_perturbations`` does, or for a probability
+    outside 0-1."""
     probabilities = {}
     for item in (i.strip() for i in text.split(",") if i.strip()):
         name, _, value = item.partition("=")

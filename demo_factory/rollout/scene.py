@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import numpy as np
 
 from demo_factory.record import Frame, RobotState
@@ -19,14 +21,15 @@ def start_scene(task: Task, variation: Variation, seed: int, cameras=DEFAULT_CAM
     task's starting gripper, the scene at rest, the episode clock at 0 and the task watching every physics
     step (`task.on_step`, e.g. which buttons went down). The caller closes the world.
 
-    ``perturbations`` names factors of `rollout.perturbations` to apply to the built scene (drawn from `seed`; what
-    they drew is in ``world.perturbations``)."""
+    ``perturbations`` names factors of `rollout.perturbations` to apply (drawn from `seed`; what they drew is in
+    ``world.perturbations``): the "shape" ones to the task before its scene is built, the others to the scene."""
     world = World(cameras, tuple(image_size))
     try:
         world.reset_arm(HOME, gripper_open=1.0 if task.gripper_starts_open else 0.0)
+        drawn = apply_perturbations(world, task, variation, seed, perturbations, before_build=True)
         task.build_scene(world, variation, np.random.default_rng(seed))
-        if perturbations:
-            world.perturbations = apply_perturbations(world, task, variation, seed, perturbations)
+        drawn |= apply_perturbations(world, task, variation, seed, perturbations)
+        world.perturbations = {name: drawn[name] for name in perturbations}
         world.step(SETTLE_BEFORE_STEPS)
     except BaseException:
         world.close()
@@ -54,10 +57,33 @@ def observe(world: World, keyframe_index: int, is_keyframe: bool, is_dense: bool
 
 
 def start_views(task_name: str, variation_id: int, seed: int, names, image_size) -> dict[str, np.ndarray]:
-    """Every camera's RGB at the start of an episode's scene under the named perturbations: {camera: image}."""
+    """Every camera's RGB at the start of an episode's scene under the named perturbations, with their mid-episode
+    changes made (a moved button shows where it goes): {camera: image}."""
     task = get_task(task_name)
     world = start_scene(task, task.variation(variation_id), seed, DEFAULT_CAMERAS, tuple(image_size), tuple(names))
     try:
+        for event in world.pending_events:
+            event()
         return {name: view.rgb for name, view in world.render_cameras().items()}
     finally:
         world.close()
+
+
+class ExpertKeyframes(Sequence):
+    """The expert's keyframes in a scene. After a perturbation moved a task object mid-episode
+    (``world.scene_changes``), the keyframe asked for and those after it are the expert's again, from the scene as it
+    is then; the ones before stay as they were."""
+
+    def __init__(self, task: Task, world: World):
+        self.task, self.world = task, world
+        self.keyframes = task.expert(world)
+        self.seen = world.scene_changes
+
+    def __len__(self) -> int:
+        return len(self.keyframes)
+
+    def __getitem__(self, index):
+        if isinstance(index, int) and self.world.scene_changes != self.seen:
+            self.keyframes = self.keyframes[:index] + self.task.expert(self.world)[index:]
+            self.seen = self.world.scene_changes
+        return self.keyframes[index]

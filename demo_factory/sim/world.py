@@ -87,6 +87,8 @@ class World:
         self.step_callbacks = []
         self.light: dict = {}  # the renderer's light settings (PyBullet's getCameraImage keywords); {}: its default
         self.perturbations: dict = {}  # what `rollout.perturbations` changed: {name: the parameters drawn}
+        self.scene_changes = 0  # task objects moved mid-episode by a perturbation: the expert looks again
+        self.pending_events: list = []  # a perturbation's mid-episode changes, each callable once (to preview it)
         p.setGravity(0, 0, -9.81, physicsClientId=self.client)
         p.setTimeStep(TIME_STEP, physicsClientId=self.client)
         p.setPhysicsEngineParameter(deterministicOverlappingPairs=1, numSolverIterations=100, physicsClientId=self.client)

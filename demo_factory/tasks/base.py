@@ -79,6 +79,10 @@ class Task(ABC):
     split_seed: int = 0
     paper_numbering: PaperNumbering | None = None
     gripper_starts_open: bool = True
+    # Colosseum's object size (the `object_size` perturbation): a task that is ``resizable`` builds its objects
+    # ``object_scale`` times their size, and its expert follows.
+    resizable: bool = False
+    object_scale: float = 1.0
 
     # -- variations (pure functions of the class, computed once per process) ----------------
     @property

@@ -37,6 +37,7 @@ class PickAndLift(Task):
     max_sequence = 1
     n_train, n_test = 10, 9
     split_seed = 20220303
+    resizable = True
 
     def synthetic_instructions(self, variation: Variation) -> list[str]:
         c = variation.words[0]
@@ -49,9 +50,10 @@ class PickAndLift(Task):
         points = spread_positions(rng, N_BLOCKS + 1, WORKSPACE, MIN_SPACING)
         self.world = world
         self.blocks = {}
+        half = CUBE * self.object_scale / 2
         for colour, xy in zip(colours, points[1:]):
             yaw = rng.uniform(-np.pi / 4, np.pi / 4)
-            self.blocks[str(colour)] = world.add_box((CUBE / 2,) * 3, (*xy, CUBE / 2), rgba(str(colour)), mass=0.06,
+            self.blocks[str(colour)] = world.add_box((half,) * 3, (*xy, half), rgba(str(colour)), mass=0.06,
                                                      orientation=Rotation.from_euler("z", yaw).as_quat(), friction=1.0)
         self.target = np.array([*points[0], rng.uniform(*TARGET_HEIGHT)])
         marker(world, self.target, TARGET_RADIUS, rgba(TARGET_COLOUR))

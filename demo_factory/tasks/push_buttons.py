@@ -112,6 +112,8 @@ class PushButtons(Task):
     # The fork's 18 x 17 x 16 + 18 x 17 + 18 = 5220 sequences, every one of them: ids 0-5219.
     paper_numbering = PaperNumbering("push_buttons3", per_length=5220, total=5220)
     gripper_starts_open = False
+    resizable = True
+    housing_scale = 1.0  # the housings' height times this (the `taller_button` perturbation)
 
     def synthetic_instructions(self, variation: Variation) -> list[str]:
         c = variation.words
@@ -157,7 +159,11 @@ class PushButtons(Task):
         positions = spread_positions(rng, N_BUTTONS, WORKSPACE, MIN_SPACING)
         self.world = world
         self.instructed = variation
-        self.buttons = {colour: _make_button(world, pos, colour) for colour, pos in zip(colours, positions)}
+        s = self.object_scale
+        self.base_half = (BASE_HALF[0] * s, BASE_HALF[1] * s, BASE_HALF[2] * s * self.housing_scale)
+        self.cap_size = (CAP_RADIUS * s, CAP_HALF_HEIGHT * s)
+        self.buttons = {colour: _make_button(world, pos, colour, self.base_half, self.cap_size)
+                        for colour, pos in zip(colours, positions)}
         self.positions = {colour: pos for colour, pos in zip(colours, positions)}
         self.pressed_order: list[str] = []
         self._down = {colour: False for colour in colours}
@@ -165,7 +171,28 @@ class PushButtons(Task):
 
     def cap_top(self, colour: str) -> np.ndarray:
         x, y = self.positions[colour]
-        return np.array([x, y, 2 * BASE_HALF[2] + 2 * CAP_HALF_HEIGHT])
+        return np.array([x, y, 2 * self.base_half[2] + 2 * self.cap_size[1]])
+
+    # -- the paper's real-robot situations (rollout.perturbations) --------------------------
+    def free_button_place(self, rng: np.random.Generator, tries: int = 200) -> np.ndarray | None:
+        """A point of the workspace at least MIN_SPACING from every button (where a button can move to)."""
+        (x0, x1), (y0, y1) = WORKSPACE
+        for _ in range(tries):
+            point = np.array([rng.uniform(x0, x1), rng.uniform(y0, y1)])
+            if all(np.linalg.norm(point - np.asarray(xy)) >= MIN_SPACING for xy in self.positions.values()):
+                return point
+        return None
+
+    def move_button(self, world, colour: str, xy) -> None:
+        """Put a button elsewhere on the table mid-episode; the expert's later presses follow it."""
+        p.resetBasePositionAndOrientation(self.buttons[colour], (float(xy[0]), float(xy[1]), self.base_half[2]),
+                                          (0, 0, 0, 1), physicsClientId=world.client)
+        self.positions[colour] = np.asarray(xy, dtype=float)
+        world.scene_changes += 1
+
+    def paint_button(self, world, colour: str, as_colour: str) -> None:
+        """Give a button's cap another button's colour (its name in the task stays ``colour``)."""
+        p.changeVisualShape(self.buttons[colour], 0, rgbaColor=rgba(as_colour), physicsClientId=world.client)
 
     def expert(self, world) -> list[KeyframeTarget]:
         tip = world.fingertip_offset()
@@ -226,18 +253,22 @@ class PushButtons(Task):
 
 
 
-def _make_button(world, xy, colour: str) -> int:
-    """A fixed housing with a sprung cap on a prismatic joint; the cap is pressed when pushed in."""
+def _make_button(world, xy, colour: str, base_half=BASE_HALF, cap_size=(CAP_RADIUS, CAP_HALF_HEIGHT)) -> int:
+    """A fixed housing with a sprung cap on a prismatic joint; the cap is pressed when pushed in.
+    ``base_half``: the housing's half extents; ``cap_size``: the cap's radius and half height."""
     client = world.client
-    base_col = p.createCollisionShape(p.GEOM_BOX, halfExtents=BASE_HALF, physicsClientId=client)
-    base_vis = p.createVisualShape(p.GEOM_BOX, halfExtents=BASE_HALF, rgbaColor=(0.25, 0.25, 0.25, 1), physicsClientId=client)
-    cap_col = p.createCollisionShape(p.GEOM_CYLINDER, radius=CAP_RADIUS, height=2 * CAP_HALF_HEIGHT, physicsClientId=client)
-    cap_vis = p.createVisualShape(p.GEOM_CYLINDER, radius=CAP_RADIUS, length=2 * CAP_HALF_HEIGHT, rgbaColor=rgba(colour), physicsClientId=client)
+    (radius, half_height) = cap_size
+    base_col = p.createCollisionShape(p.GEOM_BOX, halfExtents=base_half, physicsClientId=client)
+    base_vis = p.createVisualShape(p.GEOM_BOX, halfExtents=base_half, rgbaColor=(0.25, 0.25, 0.25, 1),
+                                   physicsClientId=client)
+    cap_col = p.createCollisionShape(p.GEOM_CYLINDER, radius=radius, height=2 * half_height, physicsClientId=client)
+    cap_vis = p.createVisualShape(p.GEOM_CYLINDER, radius=radius, length=2 * half_height, rgbaColor=rgba(colour),
+                                  physicsClientId=client)
     body = p.createMultiBody(
         baseMass=0, baseCollisionShapeIndex=base_col, baseVisualShapeIndex=base_vis,
-        basePosition=(float(xy[0]), float(xy[1]), BASE_HALF[2]),
+        basePosition=(float(xy[0]), float(xy[1]), base_half[2]),
         linkMasses=[0.05], linkCollisionShapeIndices=[cap_col], linkVisualShapeIndices=[cap_vis],
-        linkPositions=[(0, 0, BASE_HALF[2] + CAP_HALF_HEIGHT)], linkOrientations=[(0, 0, 0, 1)],
+        linkPositions=[(0, 0, base_half[2] + half_height)], linkOrientations=[(0, 0, 0, 1)],
         linkInertialFramePositions=[(0, 0, 0)], linkInertialFrameOrientations=[(0, 0, 0, 1)],
         linkParentIndices=[0], linkJointTypes=[p.JOINT_PRISMATIC], linkJointAxis=[(0, 0, 1)],
         physicsClientId=client,

@@ -25,6 +25,7 @@ class ReachTarget(Task):
     max_sequence = 1
     n_train = n_test = 10
     split_seed = 20220301
+    resizable = True
 
     def synthetic_instructions(self, variation: Variation) -> list[str]:
         c = variation.words[0]
@@ -36,7 +37,7 @@ class ReachTarget(Task):
         self.spheres = {}
         for colour, xy in zip(colours, spread_positions(rng, N_SPHERES, WORKSPACE, MIN_SPACING)):
             self.spheres[str(colour)] = np.array([*xy, rng.uniform(*HEIGHT)])
-            marker(world, self.spheres[str(colour)], RADIUS, rgba(str(colour)))
+            marker(world, self.spheres[str(colour)], RADIUS * self.object_scale, rgba(str(colour)))
         self.target = variation.words[0]
 
     def expert(self, world) -> list[KeyframeTarget]:
@@ -48,7 +49,7 @@ class ReachTarget(Task):
         return motions.reach(self.spheres[other], motions.top_down(0.0))
 
     def success(self, world) -> bool:
-        return float(np.linalg.norm(world.gripper_pose()[:3] - self.spheres[self.target])) < RADIUS
+        return float(np.linalg.norm(world.gripper_pose()[:3] - self.spheres[self.target])) < RADIUS * self.object_scale
 
     def goal_points(self, world, variation: Variation) -> list[np.ndarray]:
         return [np.asarray(self.spheres[variation.words[0]])]

@@ -22,6 +22,12 @@ class SlideBlockToTarget(PlacementTask):
     name = "slide_block_to_target"
     description = "Push the red block across the table onto the green target square."
     categories = ("tools",)
+    resizable = True
+
+    @property
+    def cube(self) -> float:
+        """The block's edge length (m): CUBE, times ``object_scale``."""
+        return CUBE * self.object_scale
 
     def synthetic_instructions(self, variation: Variation) -> list[str]:
         return ["slide the block to the target", "push the red block onto the green square",
@@ -37,11 +43,12 @@ class SlideBlockToTarget(PlacementTask):
         self.world = world
         world.add_box((TARGET_HALF, TARGET_HALF, 0.0005), (*self.target, 0.0006), (0.1, 0.7, 0.1, 1.0), mass=0.0,
                       collision=False)
-        self.block = world.add_box((CUBE / 2,) * 3, (*start, CUBE / 2), (0.9, 0.1, 0.1, 1.0), mass=0.1, friction=0.6)
+        self.block = world.add_box((self.cube / 2,) * 3, (*start, self.cube / 2), (0.9, 0.1, 0.1, 1.0), mass=0.1,
+                                   friction=0.6)
 
     def expert(self, world) -> list[KeyframeTarget]:
         position, _ = world.body_pose(self.block)
-        back_off = (CUBE / 2 + CONTACT_GAP) * self.direction
+        back_off = (self.cube / 2 + CONTACT_GAP) * self.direction
         yaw = float(np.arctan2(self.direction[1], self.direction[0]))
         start = [*(position[:2] - back_off), PUSH_HEIGHT]
         end = [*(self.target - back_off + 0.004 * self.direction), PUSH_HEIGHT]

@@ -39,6 +39,12 @@ class StackBlocks(Task):
     max_sequence = 1
     n_train = n_test = 10
     split_seed = 20220317
+    resizable = True
+
+    @property
+    def cube(self) -> float:
+        """The block's edge length (m): CUBE, times ``object_scale``."""
+        return CUBE * self.object_scale
 
     def synthetic_instructions(self, variation: Variation) -> list[str]:
         c, n = variation.words[0], NUMBERS[N_STACK]
@@ -60,7 +66,7 @@ class StackBlocks(Task):
         self.platform_yaw = float(rng.uniform(-np.pi / 4, np.pi / 4))
         self.platform = world.add_box(PLATFORM_HALF, (*self.platform_xy, PLATFORM_HALF[2]), PLATFORM_RGBA, mass=0.0,
                                       orientation=Rotation.from_euler("z", self.platform_yaw).as_quat())
-        half = CUBE / 2
+        half = self.cube / 2
         self.blocks: list[int] = []  # the instructed colour's
         self.distractors: list[int] = []
         for index, xy in enumerate(points[1:]):
@@ -82,7 +88,7 @@ class StackBlocks(Task):
         on_platform = motions.top_down(self.platform_yaw)
         for level, block in enumerate(blocks):
             position, orientation = world.body_pose(block)
-            place_z = PLATFORM_TOP + (level + 0.5) * CUBE + PLACE_CLEARANCE
+            place_z = PLATFORM_TOP + (level + 0.5) * self.cube + PLACE_CLEARANCE
             keyframes += motions.grasp(position, motions.top_down(folded_yaw(orientation)), ABOVE)
             keyframes += motions.place([*self.platform_xy, place_z], on_platform, ABOVE)
         return keyframes
@@ -111,7 +117,7 @@ class StackBlocks(Task):
                 break
             stack.append(on_it[0])
             remaining.remove(on_it[0])
-            below, tolerance = world.body_pose(on_it[0])[0] + [0.0, 0.0, CUBE / 2], STACK_TOLERANCE
+            below, tolerance = world.body_pose(on_it[0])[0] + [0.0, 0.0, self.cube / 2], STACK_TOLERANCE
         return stack, below, tolerance
 
     def failure(self, world) -> Failure | None:
@@ -132,12 +138,12 @@ class StackBlocks(Task):
         free of the robot."""
         position, _ = world.body_pose(block)
         return (float(np.linalg.norm(position[:2] - top[:2])) < tolerance
-                and abs(float(position[2]) - CUBE / 2 - float(top[2])) < HEIGHT_TOLERANCE
+                and abs(float(position[2]) - self.cube / 2 - float(top[2])) < HEIGHT_TOLERANCE
                 and upright(world, block) and at_rest(world, block) and free_of_robot(world, block))
 
     def goal_points(self, world, variation: Variation) -> list[np.ndarray]:
         """The instructed colour's blocks the expert stacks, bottom first (their tops)."""
-        return [world.body_pose(b)[0] + [0.0, 0.0, CUBE / 2] for b in self.chosen(world)]
+        return [world.body_pose(b)[0] + [0.0, 0.0, self.cube / 2] for b in self.chosen(world)]
 
     def goal_place(self) -> np.ndarray:
         return np.array([*self.platform_xy, PLATFORM_TOP])

@@ -107,6 +107,7 @@ class Tower(Task):
     # 100-199 are exactly the colour sequences of the authors' annotations.json. Ids 200 on are the
     # other sequences (see ``paper_variations``), never in a split, nameable as unseen variations.
     paper_numbering = PaperNumbering("tower3", per_length=200, total=200)
+    resizable = True
 
     def synthetic_instructions(self, variation: Variation) -> list[str]:
         c = variation.words
@@ -130,6 +131,11 @@ class Tower(Task):
         return [frame.format(*variation.words) for frame in HELD_OUT[len(variation.words)]]
 
     # -- scene ----------------------------------------------------------------------------
+    @property
+    def cube(self) -> float:
+        """The cubes' edge length (m): CUBE, times ``object_scale``."""
+        return CUBE * self.object_scale
+
     def build_scene(self, world, variation: Variation, rng: np.random.Generator) -> None:
         distractors = [x for x in self.palette if x not in variation.words]
         colours = list(variation.words) + list(rng.choice(distractors, N_CUBES - len(variation.words), replace=False))
@@ -137,7 +143,7 @@ class Tower(Task):
         self.world = world
         self.instructed = variation
         self.target = points[0]
-        half = CUBE / 2
+        half = self.cube / 2
         self.target_body = world.add_box((0.035, 0.035, 0.0005), (*self.target, 0.0006), TARGET_RGBA, mass=0.0,
                                          collision=False)
         self.cubes: dict[str, int] = {}
@@ -167,7 +173,7 @@ class Tower(Task):
         keyframes = []
         for level, colour in enumerate(self.instructed.words):
             position, _ = world.body_pose(self.cubes[colour])
-            place_z = (level + 0.5) * CUBE + PLACE_CLEARANCE
+            place_z = (level + 0.5) * self.cube + PLACE_CLEARANCE
             keyframes += motions.grasp(position, motions.top_down(self.grasp_yaw(colour)), ABOVE, SWITCH_KEYFRAME)
             keyframes += motions.place([*self.target, place_z], motions.top_down(0.0), ABOVE, SWITCH_KEYFRAME)
         return keyframes
@@ -185,7 +191,7 @@ class Tower(Task):
         """The cube stands on the target spot at ``level`` (0 = on the table)."""
         position, _ = world.body_pose(self.cubes[colour])
         return (np.linalg.norm(position[:2] - self.target) <= POSITION_TOLERANCE
-                and abs(position[2] - (level + 0.5) * CUBE) <= HEIGHT_TOLERANCE)
+                and abs(position[2] - (level + 0.5) * self.cube) <= HEIGHT_TOLERANCE)
 
     def success(self, world) -> bool:
         return all(self.in_place(world, colour, level) for level, colour in enumerate(self.instructed.words))
@@ -206,7 +212,7 @@ class Tower(Task):
         for colour, body in self.cubes.items():
             is_held = held(world, body)
             if is_held:
-                self.lifted[colour] = max(self.lifted[colour], world.body_pose(body)[0][2] - CUBE / 2)
+                self.lifted[colour] = max(self.lifted[colour], world.body_pose(body)[0][2] - self.cube / 2)
             elif colour in self._held:  # let go (on purpose or not): where?
                 self.released[colour] = float(np.linalg.norm(world.body_pose(body)[0][:2] - self.target))
             (self._held.add if is_held else self._held.discard)(colour)
@@ -251,7 +257,7 @@ class Tower(Task):
                                f"({100 * off:.0f} cm from the target at the end)")
             released = self.released.get(colour, off)
             if released <= NEAR_TARGET:
-                below = round(100 * (position[2] - (level + 0.5) * CUBE), 1) + 0.0  # cm, never "-0.0"
+                below = round(100 * (position[2] - (level + 0.5) * self.cube), 1) + 0.0  # cm, never "-0.0"
                 return Failure("cube placed off target", subgoal,
                                f"the {colour} cube was let go {100 * released:.1f} cm from the target spot and lies "
                                f"{100 * off:.1f} cm from it, {below:+.1f} cm from its level (counts within "
@@ -265,7 +271,7 @@ class Tower(Task):
         for other, other_body in self.cubes.items():
             other_position, _ = world.body_pose(other_body)
             if other != colour and np.linalg.norm(other_position[:2] - self.target) <= NEAR_TARGET \
-                    and abs(other_position[2] - (level + 0.5) * CUBE) <= HEIGHT_TOLERANCE:
+                    and abs(other_position[2] - (level + 0.5) * self.cube) <= HEIGHT_TOLERANCE:
                 where = "on the target" if level == 0 else f"at level {subgoal} of the tower"
                 return Failure("wrong cube placed", subgoal,
                                f"the {other} cube ({self._role(other)}) stands {where} where {colour} belongs")
@@ -287,16 +293,16 @@ class Tower(Task):
     goal_sketch = "stack"
 
     def goal_points(self, world, variation: Variation) -> list[np.ndarray]:
-        return [world.body_pose(self.cubes[colour])[0] + [0.0, 0.0, CUBE / 2] for colour in variation.words]
+        return [world.body_pose(self.cubes[colour])[0] + [0.0, 0.0, self.cube / 2] for colour in variation.words]
 
     def goal_place(self) -> np.ndarray:
         return np.array([*self.target, 0.0])
 
     def show_goal(self, world, variation: Variation) -> np.ndarray:
         for level, colour in enumerate(variation.words):
-            position = (float(self.target[0]), float(self.target[1]), (level + 0.5) * CUBE)
+            position = (float(self.target[0]), float(self.target[1]), (level + 0.5) * self.cube)
             world.set_body_pose(self.cubes[colour], position, (0, 0, 0, 1))
-        return np.array([*self.target, len(variation.words) * CUBE])
+        return np.array([*self.target, len(variation.words) * self.cube])
 
     def scene_facts(self) -> dict:
         return {
