@@ -58,9 +58,8 @@ def expert_trajectory(env) -> list[RobotState]:
         record(world)
         world.step_callbacks.append(record)
         executor = KeyframeExecutor(world, env.kinematics, JointPlanner(), env.episode.seed, task.graspable_bodies())
-        targets = ExpertKeyframes(task, world)
-        for transition in range(1, len(targets) + 1):
-            if not executor.execute(targets[transition - 1], transition).ok:
+        for transition, target in enumerate(ExpertKeyframes(task, world), start=1):
+            if not executor.execute(target, transition).ok:
                 break
     finally:
         world.close()

@@ -108,8 +108,7 @@ def run_episode(request: EpisodeRequest, out_dir: str | Path | None) -> EpisodeO
         targets = ExpertKeyframes(task, world)
         attempts_log, attempt_log, attempts_used, planning_seconds = [], [], [], []
         reason = None
-        for index in range(1, len(targets) + 1):
-            target = targets[index - 1]
+        for index, target in enumerate(targets, start=1):  # lazily: a keyframe is planned when it is reached
             outcome = executor.execute(target, transition=index)
             if outcome.plan is not None:
                 attempts_log += outcome.plan.attempts

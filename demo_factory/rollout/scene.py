@@ -72,7 +72,7 @@ def start_views(task_name: str, variation_id: int, seed: int, names, image_size)
 class ExpertKeyframes(Sequence):
     """The expert's keyframes in a scene. After a perturbation moved a task object mid-episode
     (``world.scene_changes``), the keyframe asked for and those after it are the expert's again, from the scene as it
-    is then; the ones before stay as they were."""
+    is then; the ones before stay as they were. Iterating asks for each keyframe when the loop reaches it."""
 
     def __init__(self, task: Task, world: World):
         self.task, self.world = task, world
