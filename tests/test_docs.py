@@ -72,7 +72,7 @@ def test_the_run_table_holds_every_run_with_its_columns(tmp_path):
     assert len(rows) >= 30  # every reference run so far, failures included
     assert {row["status"] for row in rows} >= {"completed", "stopped"}
     for recipe in ("make reference", "make reference-unseen", "make reference-tower"):
-        assert sum(row["recipe"] == recipe and row["current"] == "1" for row in rows) >= 2, recipe
+        assert any(row["recipe"] == recipe and row["current"] == "1" for row in rows), recipe
     # A malformed table is refused in one line naming the value.
     bad = tmp_path / "runs.csv"
     with bad.open("w", newline="") as file:
