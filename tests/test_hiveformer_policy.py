@@ -836,6 +836,27 @@ def test_minilm_words_gives_a_word_the_same_features_wherever_it_stands(tiny_dat
     assert math.isfinite(loss.item())
 
 
+def test_colour_features_give_a_colour_name_its_colour_whatever_the_word(tiny_dataset_root):
+    from lerobot_policy_hiveformer.colour_names import colour_spans
+
+    text = "Press the dark blue button, then the scarlet one, then blue-green; then wine, not winery"
+    assert [text[a:b] for a, b, _ in colour_spans(text)] == ["dark blue", "scarlet", "blue-green", "wine"]
+    policy = make_tiny_policy(tiny_dataset_root, text_encoder="minilm_words", colour_features=True)
+    features, mask = policy.instruction_encoder.encode(["press the red button", "press the scarlet button",
+                                                       "press the navy button", "press the dark blue button"])
+    assert features.shape[-1] == 384 + 4 and mask.sum(1).tolist() == [6, 6, 6, 7]  # dark blue: two tokens
+    # [CLS] press the red button [SEP]: the colour word holds its coordinates and a 1, its text features zeroed.
+    red, scarlet, navy, dark_blue = features[0, 3], features[1, 3], features[2, 3], features[3, 3:5]
+    assert red[-1] == 1 and not red[:384].any() and not features[0, 2, 384:].any() and features[0, 2, :384].any()
+    assert torch.equal(dark_blue[0], dark_blue[1])  # every token of the name
+    # A synonym no palette holds is nearer its colour than another: what one-hot or word-piece codes cannot say.
+    assert torch.dist(scarlet[-4:-1], red[-4:-1]) < torch.dist(scarlet[-4:-1], navy[-4:-1])
+    assert torch.dist(dark_blue[0, -4:-1], navy[-4:-1]) < torch.dist(dark_blue[0, -4:-1], red[-4:-1])
+    assert math.isfinite(policy.forward(history_batch(tiny_dataset_root, policy.config, [2]))[0].item())
+    with pytest.raises(ValueError, match="colour_features needs text_encoder minilm or minilm_words; got 'one_hot'"):
+        HiveformerConfig(text_encoder="one_hot", colour_features=True, device="cpu")
+
+
 def test_measure_compute_times_each_part_of_every_rollout_step(tiny_dataset_root):
     """The benchmark's split of a rollout step (measure_compute.py) times each part once per step."""
     from lerobot_policy_hiveformer import measure_compute as measure

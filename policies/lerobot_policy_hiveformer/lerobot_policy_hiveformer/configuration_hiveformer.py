@@ -102,6 +102,10 @@ class HiveformerConfig(PreTrainedConfig):
     text_encoder_name: str = "openai/clip-vit-base-patch32"
     # Local directory with a copy of that model (config.json + weights); takes precedence over the Hub.
     text_encoder_path: str | None = None
+    # With "minilm" or "minilm_words": the tokens of a colour name (a table of ~1,100 names, `colour_names.py`)
+    # carry that colour's CIELAB coordinates in place of their text features, so that a colour word never seen in
+    # training ("scarlet") still says which colour it means. Needs matplotlib (the `minilm` extra).
+    colour_features: bool = False
     # Ablation: False averages the instruction's token features into a single token.
     instruction_as_sequence: bool = True
     # Learned position embeddings on the instruction tokens, as the authors': token order is what tells
@@ -227,6 +231,8 @@ class HiveformerConfig(PreTrainedConfig):
             raise ValueError(
                 f"text_encoder must be one of {', '.join(TEXT_ENCODERS)}; got {self.text_encoder!r}."
             )
+        if self.colour_features and self.text_encoder not in ("minilm", "minilm_words"):
+            raise ValueError(f"colour_features needs text_encoder minilm or minilm_words; got {self.text_encoder!r}.")
         if self.lr_schedule not in LR_SCHEDULES:
             raise ValueError(f"lr_schedule must be one of {', '.join(LR_SCHEDULES)}; got {self.lr_schedule!r}.")
         if self.lr_warmup_steps < 0 or (self.lr_warmup_steps and self.lr_schedule != "cosine"):

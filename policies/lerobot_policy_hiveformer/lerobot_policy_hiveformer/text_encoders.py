@@ -77,28 +77,51 @@ class ClipInstructionEncoder(InstructionEncoder):
 class PretrainedTransformerInstructionEncoder(InstructionEncoder):
     """Frozen pretrained BERT-style text encoder loaded from a local directory; per-token last hidden
     states of the real tokens (CLS and SEP included), or with `words_only` its word-piece input embeddings,
-    which carry no context."""
+    which carry no context. With `colour_features` each token gets 4 more features: the scaled CIELAB coordinates
+    of the colour name it is part of and a 1 (`colour_names`), its text features zeroed, so that the policy knows a
+    colour word by its colour alone; 0s elsewhere."""
 
-    def __init__(self, model_dir: Path, words_only: bool = False):
+    def __init__(self, model_dir: Path, words_only: bool = False, colour_features: bool = False):
         super().__init__()
         self.words_only = words_only
+        self.colour_features = colour_features
         from transformers import AutoTokenizer
 
         self.tokenizer = AutoTokenizer.from_pretrained(model_dir, local_files_only=True)
         self.text_model = _load_text_model(model_dir).eval().requires_grad_(False)
-        self.feature_dim = self.text_model.config.hidden_size
+        self.feature_dim = self.text_model.config.hidden_size + (COLOUR_FEATURES if colour_features else 0)
 
     @torch.no_grad()
     def _encode_new(self, instructions: list[str]) -> list[Tensor]:
-        tokens = self.tokenizer(
-            instructions, padding=True, truncation=True, max_length=CLIP_CONTEXT_LENGTH, return_tensors="pt"
-        )
+        tokens = self.tokenizer(instructions, padding=True, truncation=True, max_length=CLIP_CONTEXT_LENGTH,
+                                return_tensors="pt", return_offsets_mapping=True)
+        offsets = tokens.pop("offset_mapping")
         if self.words_only:
             hidden = self.text_model.get_input_embeddings()(tokens["input_ids"])
         else:
             hidden = self.text_model(**tokens).last_hidden_state
         lengths = tokens["attention_mask"].sum(dim=1).tolist()
-        return [hidden[i, :length].float() for i, length in enumerate(lengths)]
+        features = [hidden[i, :length].float() for i, length in enumerate(lengths)]
+        if self.colour_features:
+            features = [with_colours(f, text, offsets[i]) for i, (f, text) in enumerate(zip(features, instructions))]
+        return features
+
+
+COLOUR_FEATURES = 4  # CIELAB's L, a, b and a flag
+
+
+def with_colours(features: Tensor, text: str, offsets: Tensor) -> Tensor:
+    """(L, D) text features -> (L, D + 4): the tokens inside a colour name of ``text`` (character ``offsets`` of
+    each token, (0, 0) for special ones) carry its coordinates and a 1 in place of their text features."""
+    from .colour_names import colour_spans
+
+    colours = torch.zeros(features.shape[0], COLOUR_FEATURES)
+    for start, end, lab in colour_spans(text):
+        inside = (offsets[: len(features), 0] >= start) & (offsets[: len(features), 1] <= end) & (
+            offsets[: len(features), 1] > offsets[: len(features), 0])
+        features[inside] = 0.0
+        colours[inside] = torch.tensor([*lab, 1.0])
+    return torch.cat([features, colours], dim=1)
 
 
 # Buffers a checkpoint may hold that the model now builds itself: BERT's position ids.
@@ -210,6 +233,7 @@ def make_instruction_encoder(config: HiveformerConfig) -> InstructionEncoder:
         return ClipInstructionEncoder(tiny_random_clip_text_model())
     if config.text_encoder in ("minilm", "minilm_words"):
         words_only = config.text_encoder == "minilm_words"
-        return PretrainedTransformerInstructionEncoder(minilm_model_dir(), words_only=words_only)
+        return PretrainedTransformerInstructionEncoder(minilm_model_dir(), words_only=words_only,
+                                                       colour_features=config.colour_features)
     return OneHotInstructionEncoder(config.instruction_vocabulary)
 
