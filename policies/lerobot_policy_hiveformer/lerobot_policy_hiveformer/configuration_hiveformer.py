@@ -26,6 +26,7 @@ from .optimizers import ConstantThenCosineSchedulerConfig, FusedAdamWConfig
 # The encoder halves the image four times: one token per cell of an (H/16, W/16) grid.
 ENCODER_STRIDE = 16
 TEXT_ENCODERS = ("clip", "clip_tiny_random", "minilm", "minilm_words", "one_hot")
+MINILM_ENCODERS = ("minilm", "minilm_words")  # the ones that tokenise with offsets (`colour_features`)
 LR_SCHEDULES = ("constant", "cosine", "constant_then_cosine")
 
 
@@ -231,7 +232,7 @@ class HiveformerConfig(PreTrainedConfig):
             raise ValueError(
                 f"text_encoder must be one of {', '.join(TEXT_ENCODERS)}; got {self.text_encoder!r}."
             )
-        if self.colour_features and self.text_encoder not in ("minilm", "minilm_words"):
+        if self.colour_features and self.text_encoder not in MINILM_ENCODERS:
             raise ValueError(f"colour_features needs text_encoder minilm or minilm_words; got {self.text_encoder!r}.")
         if self.lr_schedule not in LR_SCHEDULES:
             raise ValueError(f"lr_schedule must be one of {', '.join(LR_SCHEDULES)}; got {self.lr_schedule!r}.")

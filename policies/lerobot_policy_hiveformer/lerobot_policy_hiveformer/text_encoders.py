@@ -11,7 +11,7 @@ import torch
 import torch.nn.functional as F  # noqa: N812
 from torch import Tensor
 
-from .configuration_hiveformer import HiveformerConfig
+from .configuration_hiveformer import MINILM_ENCODERS, HiveformerConfig
 
 # CLIP's context length; longer instructions are truncated by the tokenizer.
 CLIP_CONTEXT_LENGTH = 77
@@ -94,8 +94,8 @@ class PretrainedTransformerInstructionEncoder(InstructionEncoder):
     @torch.no_grad()
     def _encode_new(self, instructions: list[str]) -> list[Tensor]:
         tokens = self.tokenizer(instructions, padding=True, truncation=True, max_length=CLIP_CONTEXT_LENGTH,
-                                return_tensors="pt", return_offsets_mapping=True)
-        offsets = tokens.pop("offset_mapping")
+                                return_tensors="pt", return_offsets_mapping=self.colour_features)
+        offsets = tokens.pop("offset_mapping", None)
         if self.words_only:
             hidden = self.text_model.get_input_embeddings()(tokens["input_ids"])
         else:
@@ -115,10 +115,11 @@ def with_colours(features: Tensor, text: str, offsets: Tensor) -> Tensor:
     each token, (0, 0) for special ones) carry its coordinates and a 1 in place of their text features."""
     from .colour_names import colour_spans
 
+    first, last = offsets[: len(features)].unbind(dim=1)
+    features = features.clone()
     colours = torch.zeros(features.shape[0], COLOUR_FEATURES)
     for start, end, lab in colour_spans(text):
-        inside = (offsets[: len(features), 0] >= start) & (offsets[: len(features), 1] <= end) & (
-            offsets[: len(features), 1] > offsets[: len(features), 0])
+        inside = (first >= start) & (last <= end) & (last > first)
         features[inside] = 0.0
         colours[inside] = torch.tensor([*lab, 1.0])
     return torch.cat([features, colours], dim=1)
@@ -231,7 +232,7 @@ def make_instruction_encoder(config: HiveformerConfig) -> InstructionEncoder:
         return ClipInstructionEncoder(load_clip_text_model(config))
     if config.text_encoder == "clip_tiny_random":
         return ClipInstructionEncoder(tiny_random_clip_text_model())
-    if config.text_encoder in ("minilm", "minilm_words"):
+    if config.text_encoder in MINILM_ENCODERS:
         words_only = config.text_encoder == "minilm_words"
         return PretrainedTransformerInstructionEncoder(minilm_model_dir(), words_only=words_only,
                                                        colour_features=config.colour_features)
