@@ -61,8 +61,8 @@ def test_a_suite_run_takes_each_tasks_first_train_variation_and_its_recipe(tmp_p
     assert list(args.variations) == list(SUITES["ten_tasks"])
     assert args.variations == {t: str(get_task(t).split_variations("train")[0].id) for t in SUITES["ten_tasks"]}
     assert (args.steps, args.curve, args.eval_episodes, args.validation_episodes) == (12000, 4, 20, 10)
-    # The converter's multi-task suggestion: tower's annealed recipe with the heatmap loss.
-    assert SUITE_RECIPE == TOWER_RECIPE | {"heatmap_loss_weight": 0.1}
+    # The converter's multi-task suggestion: tower's annealed recipe with the heatmap loss and a heavier position loss.
+    assert SUITE_RECIPE == TOWER_RECIPE | {"heatmap_loss_weight": 0.1, "position_loss_weight": 30.0}
     assert args.extra_episodes == 0 and args.test_episodes == 0 and args.text_encoder == "one_hot"
     command = hiveformer_run_command(args, tmp_path / "dataset", tmp_path / "train")
     assert all(f"--policy.{name}={str(value).lower()}" in command for name, value in SUITE_RECIPE.items())
