@@ -5,7 +5,7 @@ import pytest
 
 from demo_factory.rollout import SETTLE_AFTER_STEPS, start_scene
 from demo_factory.tasks import get_task
-from demo_factory.tasks.reach_and_drag import CUBE_HALF, DRAG, DRAG_ANGLE, MIN_SPACING, N_DISTRACTORS
+from demo_factory.tasks.reach_and_drag import CUBE_HALF, DRAG, DRAG_FAN, MIN_SPACING, N_DISTRACTORS, OFF_FAN
 
 
 def _scene(seed, variation_index=0):
@@ -14,7 +14,7 @@ def _scene(seed, variation_index=0):
 
 
 @pytest.mark.parametrize("seed", range(6))
-def test_every_target_is_a_feasible_drag_from_the_cube_and_the_scene_repeats(seed):
+def test_the_instructed_target_and_a_distractor_are_feasible_drags_and_the_scene_repeats(seed):
     task, world = _scene(seed, seed)
     try:
         facts = task.scene_facts()
@@ -23,10 +23,11 @@ def test_every_target_is_a_feasible_drag_from_the_cube_and_the_scene_repeats(see
         assert N_DISTRACTORS[0] <= len(colours) - 1 <= N_DISTRACTORS[1]
         cube = world.body_pose(task.cube)[0][:2]
         points = list(task.targets.values())
-        for point in points:
+        for k, point in enumerate(points):
             drag = point - cube
             assert DRAG[0] - 1e-3 <= np.linalg.norm(drag) <= DRAG[1] + 1e-3
-            assert abs(np.arctan2(-drag[1], -drag[0])) <= DRAG_ANGLE + 1e-3  # towards the robot
+            low, high = DRAG_FAN if k < 2 else OFF_FAN  # towards the robot; only the first two within reach of a drag
+            assert low - 1e-3 <= np.arctan2(drag[1], -drag[0]) <= high + 1e-3
         assert all(np.linalg.norm(a - b) >= MIN_SPACING for i, a in enumerate(points) for b in points[i + 1:])
     finally:
         world.close()

@@ -27,24 +27,28 @@ CUBE_MASS = 0.08  # kg
 CUBE_FRICTION = 0.5
 TARGET_HALF = 0.035  # m, half side of a target square
 # Where the stick lies at the start: on the robot's left, beside the cube and the targets, hook end away
-# from the robot and the hook pointing outwards (+y), so that the carried stick keeps its yaw nearly unchanged.
+# from the robot and the hook pointing outwards (+y).
 STICK_REGION = ((0.38, 0.46), (0.27, 0.31))
 STICK_YAW = 0.25  # rad, at most this far from the world x axis
-CUBE_REGION = ((0.6, 0.66), (-0.12, 0.04))
-CUBE_YAW = 0.2  # rad, at most this far from the drag direction (the hook squares it up as it pulls)
-# Targets fan out on the robot's side of the cube: each is a possible drag from the cube (the wrong action drags
-# onto a distractor), so every one lies DRAG away in a direction at most DRAG_ANGLE off the robot's -x. The hand
-# then ends >= 0.34 m from the base: closer in, lifting the low hand folds the elbow to its limit.
-DRAG = (0.13, 0.19)  # m, cube start to a target centre
-DRAG_ANGLE = 0.7  # rad
+CUBE_REGION = ((0.64, 0.70), (-0.12, 0.0))
+CUBE_YAW = 0.2  # rad, at most this far from the world axes (the hook and the handle square it up as they pull)
+# The stick drags with the hand turned square to the world (yaw 0: handle along x, hook end away from the robot,
+# hook reaching +y), whichever the target: every keyframe after the grasp has the same orientation and lies at a
+# fixed offset from the cube or the target square, which a policy can read from the scene. The cube rides in the
+# corner between the hook and the handle, so a drag may go towards the robot (-x) and to its left (+y) by up to
+# DRAG_FAN: the hook's inner face pulls, the handle's side pushes.
+# The hand then ends >= 0.34 m from the base: closer in, lifting the low hand folds the elbow to its limit.
+DRAG = (0.12, 0.21)  # m, cube start to a target centre
+DRAG_FAN = (0.0, 0.85)  # rad from the robot's -x towards +y: the targets a drag can reach
+OFF_FAN = (-0.7, -0.2)  # rad: where a second distractor lies, a square that no drag with this stick reaches
 MIN_SPACING = 0.1  # m between target centres (3 cm between the squares)
-N_DISTRACTORS = (1, 2)  # distractor squares of other colours
-SIDE_OFFSET = 0.05  # m: the handle's axis beside the cube's centre (1 cm clear of a turned cube's corner)
+N_DISTRACTORS = (1, 2)  # distractor squares of other colours: the first within DRAG_FAN, a second off it
 START_GAP = 0.015  # m: the hook's inner face beyond the cube's far face where it is lowered
+CLEARANCE = 0.003  # m between the handle and the cube's near side where the hook is lowered
 HOVER = 0.006  # m: the stick's bottom above the table while dragging (no table friction on the stick)
 ABOVE = 0.08  # m: the stick is carried this far above its dragging height (the hook clears the 5 cm cube)
-SLIDE = 0.004  # m: the cube slides on this far after the hook stops (measured over 30 episodes: 4.3 +- 0.4 mm)
-BACK_OFF = 0.01  # m: the hook backs away from the cube before the stick is lifted, so it does not rub the cube
+SLIDE = 0.004  # m: the cube slides on this far after the hook stops
+BACK_OFF = (0.01, -0.008)  # m, world xy: the hook and the handle leave the cube before the stick is lifted
 TOLERANCE = 0.03  # m: cube centre to the target centre (the cube then lies mostly on the 7 cm square)
 
 
@@ -63,11 +67,12 @@ def _rotate(yaw: float, local) -> np.ndarray:
 
 
 def _fan_targets(rng: np.random.Generator, cube: np.ndarray, n: int) -> list[np.ndarray]:
-    """``n`` target centres, each one a feasible drag from ``cube`` towards the robot, ``MIN_SPACING`` apart."""
+    """``n`` target centres ``MIN_SPACING`` apart, each ``DRAG`` from ``cube`` towards the robot: the first two
+    within ``DRAG_FAN`` (feasible drags), any further one ``OFF_FAN``."""
     while True:
-        angles = rng.uniform(-DRAG_ANGLE, DRAG_ANGLE, n)
+        angles = np.concatenate([rng.uniform(*DRAG_FAN, min(n, 2)), rng.uniform(*OFF_FAN, max(n - 2, 0))])
         distances = rng.uniform(*DRAG, n)
-        points = [cube - d * np.array([np.cos(a), np.sin(a)]) for a, d in zip(angles, distances)]
+        points = [cube + d * np.array([-np.cos(a), np.sin(a)]) for a, d in zip(angles, distances)]
         if all(np.linalg.norm(a - b) >= MIN_SPACING for i, a in enumerate(points) for b in points[i + 1:]):
             return points
 
@@ -100,9 +105,8 @@ class ReachAndDrag(Task):
         self.targets = dict(zip(colours, _fan_targets(rng, cube_xy, len(colours))))
         for colour, xy in self.targets.items():
             world.add_box((TARGET_HALF, TARGET_HALF, 0.0005), (*xy, 0.0006), rgba(colour), mass=0.0, collision=False)
-        # The cube roughly square to its drag, so the hook meets a face rather than a corner.
-        drag = self.targets[self.instructed] - cube_xy
-        cube_yaw = float(np.arctan2(drag[1], drag[0])) + rng.uniform(-CUBE_YAW, CUBE_YAW)
+        # The cube roughly square to the stick, so the hook meets a face rather than a corner.
+        cube_yaw = rng.uniform(-CUBE_YAW, CUBE_YAW)
         self.cube_start = cube_xy
         self.cube = world.add_box((CUBE_HALF,) * 3, (*cube_xy, CUBE_HALF), (0.85, 0.85, 0.9, 1.0), mass=CUBE_MASS,
                                   orientation=Rotation.from_euler("z", cube_yaw).as_quat(), friction=CUBE_FRICTION)
@@ -115,26 +119,20 @@ class ReachAndDrag(Task):
         stick_position, stick_orientation = world.body_pose(self.stick)
         stick_yaw = _yaw_of(stick_orientation)
         grip = [*(stick_position[:2] + _rotate(stick_yaw, (GRIP_X, 0.0))), HANDLE_HALF[2] + GRIP_LIFT]
-        # Held with the fingers across the handle, the stick keeps its yaw relative to the hand: its hook end
-        # points along the hand's yaw, away from the robot, opposite to the drag.
+        # Held with the fingers across the handle, the stick keeps its yaw relative to the hand: turned to yaw 0,
+        # its handle lies along x with the hook's inner face HOOK_FACE - GRIP_X ahead of the grasp frame.
         cube = world.body_pose(self.cube)[0][:2]
         target = self.targets[self.instructed]
+        reach = CUBE_HALF * (np.cos(CUBE_YAW) + np.sin(CUBE_YAW))  # a turned cube's extent from its centre
+        ahead = HOOK_FACE - GRIP_X
+        # Lowered with the hook's face START_GAP beyond the cube and the handle CLEARANCE beside it ...
+        start = cube + (reach + START_GAP - ahead, -(reach + HANDLE_HALF[1] + CLEARANCE))
+        # ... and stopped where the cube, squared up in the corner between the two, comes to rest on the target.
         away = (cube - target) / np.linalg.norm(cube - target)
-        drag_yaw = float(np.arctan2(away[1], away[0]))
-        side = _rotate(drag_yaw, (0.0, 1.0))  # the hook's side of the handle
-
-        def grasp_point(face_xy):
-            """The grasp frame's xy when the hook's inner face is centred at ``face_xy`` and the cube's centre
-            line lies ``SIDE_OFFSET`` along the hook from the handle's axis."""
-            return face_xy - (HOOK_FACE - GRIP_X) * away - SIDE_OFFSET * side
-
-        # A turned cube reaches further than its half side: START_GAP is measured from its corner.
-        corner = CUBE_HALF * (np.cos(CUBE_YAW) + np.sin(CUBE_YAW))
-        start = grasp_point(cube + (corner + START_GAP) * away)
-        end = grasp_point(target + (CUBE_HALF + SLIDE) * away)
-        backed = end + BACK_OFF * away
+        end = target + (CUBE_HALF - ahead, -(CUBE_HALF + HANDLE_HALF[1])) + SLIDE * away
+        backed = end + BACK_OFF
         drag_z = HANDLE_HALF[2] + GRIP_LIFT + HOVER
-        orientation = motions.top_down(drag_yaw)
+        orientation = motions.top_down(0.0)
         return (motions.grasp(grip, motions.top_down(stick_yaw))
                 + motions.reach([*start, drag_z + ABOVE], orientation, motions.CLOSED)
                 + motions.lift([*start, drag_z], orientation)
