@@ -63,3 +63,23 @@ def test_instructions_name_the_colour_and_goal_points_are_the_cube_then_the_targ
         assert np.allclose(target[:2], task.targets[task.instructed])
     finally:
         world.close()
+
+
+def test_after_the_grasp_every_keyframe_has_one_orientation_and_a_fixed_offset_from_the_cube_or_the_target():
+    """What makes the task learnable: nothing after the grasp depends on the cube-to-target direction."""
+    offsets = []
+    for seed in range(4):
+        task, world = _scene(seed, seed)
+        try:
+            keyframes = task.expert(world)
+            cube = world.body_pose(task.cube)[0][:2]
+            target = task.targets[task.instructed]
+        finally:
+            world.close()
+        after = keyframes[4:]  # the grasp is the first four
+        assert all(np.allclose(k.pose[3:], after[0].pose[3:]) for k in after)
+        start, end = np.array(after[1].pose[:2]), np.array(after[2].pose[:2])
+        offsets.append((start - cube, end - target))
+    starts, ends = (np.array(column) for column in zip(*offsets))
+    assert np.ptp(starts, axis=0).max() < 1e-9
+    assert np.ptp(ends, axis=0).max() < 0.01  # the cube's slide after the stop is along the drag
