@@ -123,10 +123,10 @@ class ReachAndDrag(Task):
         # its handle lies along x with the hook's inner face HOOK_FACE - GRIP_X ahead of the grasp frame.
         cube = world.body_pose(self.cube)[0][:2]
         target = self.targets[self.instructed]
-        reach = CUBE_HALF * (np.cos(CUBE_YAW) + np.sin(CUBE_YAW))  # a turned cube's extent from its centre
+        extent = CUBE_HALF * (np.cos(CUBE_YAW) + np.sin(CUBE_YAW))  # a turned cube's extent from its centre
         ahead = HOOK_FACE - GRIP_X
         # Lowered with the hook's face START_GAP beyond the cube and the handle CLEARANCE beside it ...
-        start = cube + (reach + START_GAP - ahead, -(reach + HANDLE_HALF[1] + CLEARANCE))
+        start = cube + (extent + START_GAP - ahead, -(extent + HANDLE_HALF[1] + CLEARANCE))
         # ... and stopped where the cube, squared up in the corner between the two, comes to rest on the target.
         away = (cube - target) / np.linalg.norm(cube - target)
         end = target + (CUBE_HALF - ahead, -(CUBE_HALF + HANDLE_HALF[1])) + SLIDE * away

@@ -10,8 +10,8 @@ from demo_factory.tasks.objects import Part, add_body, resting_on, upright
 from demo_factory.tasks.variations import Variation
 
 SLOTS = ("left", "middle", "right")  # as seen from the robot: left is +y
-# A slot leaves the bottle 2 cm on each side: a shoulder camera's pixel spans ~1.2 cm at the rack at 64x64, and
-# with the 0.95 cm of a 7.5 cm slot a policy placed the bottle on a wall in most of its misses.
+# A slot leaves the bottle 2 cm on each side, more than a shoulder camera's pixel at the rack at 64x64 (~1.2 cm);
+# docs/reference/suite.md says what narrower slots did.
 SLOT_INNER = 0.095
 RACK_WALL, RACK_WALL_HEIGHT, RACK_PLATE = 0.008, 0.05, 0.01
 BOTTLE_RADIUS, BODY_LENGTH = 0.028, 0.12

@@ -7,6 +7,8 @@ seed and the task's expert plans it from the start; the k-th predicted keyframe 
 (xy and z distance of the gripper position, angle between the orientations). The first keyframes carry no earlier
 error: where the policy first points is measured alone, without replaying anything. Later keyframes are compared
 with the plan of the untouched scene, so where the policy moved objects their errors include the scene's.
+The last two columns are the medians of a constant prediction, the expert's mean keyframe: a keyframe whose error is
+no smaller has not been learnt from what the policy sees. In a multi-task evaluation, pick one task with --task.
 """
 
 from __future__ import annotations
