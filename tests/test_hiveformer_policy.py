@@ -845,16 +845,43 @@ def test_colour_features_give_a_colour_name_its_colour_whatever_the_word(tiny_da
     features, mask = policy.instruction_encoder.encode(["press the red button", "press the scarlet button",
                                                        "press the navy button", "press the dark blue button"])
     assert features.shape[-1] == 384 + 4 and mask.sum(1).tolist() == [6, 6, 6, 7]  # dark blue: two tokens
-    # [CLS] press the red button [SEP]: the colour word holds its coordinates and a 1, its text features zeroed.
+    # [CLS] press the red button [SEP]: the colour word holds its coordinates and a 1 beside its text features.
     red, scarlet, navy, dark_blue = features[0, 3], features[1, 3], features[2, 3], features[3, 3:5]
-    assert red[-1] == 1 and not red[:384].any() and not features[0, 2, 384:].any() and features[0, 2, :384].any()
-    assert torch.equal(dark_blue[0], dark_blue[1])  # every token of the name
+    assert red[-1] == 1 and red[:384].any() and not features[0, 2, 384:].any() and features[0, 2, :384].any()
+    plain, _ = make_tiny_policy(tiny_dataset_root, text_encoder="minilm_words").instruction_encoder.encode(
+        ["press the red button"])
+    assert torch.equal(red[:384], plain[0, 3])  # the word's own features, unchanged
+    assert torch.equal(dark_blue[0, -4:], dark_blue[1, -4:])  # every token of the name
     # A synonym no palette holds is nearer its colour than another: what one-hot or word-piece codes cannot say.
     assert torch.dist(scarlet[-4:-1], red[-4:-1]) < torch.dist(scarlet[-4:-1], navy[-4:-1])
     assert torch.dist(dark_blue[0, -4:-1], navy[-4:-1]) < torch.dist(dark_blue[0, -4:-1], red[-4:-1])
     assert math.isfinite(policy.forward(history_batch(tiny_dataset_root, policy.config, [2]))[0].item())
     with pytest.raises(ValueError, match="colour_features needs text_encoder minilm or minilm_words; got 'one_hot'"):
         HiveformerConfig(text_encoder="one_hot", colour_features=True, device="cpu")
+
+
+def test_colour_word_dropout_zeroes_only_colour_words_text_and_only_in_training(tiny_dataset_root):
+    from lerobot_policy_hiveformer.modeling_hiveformer import drop_colour_words
+
+    policy = make_tiny_policy(tiny_dataset_root, text_encoder="minilm_words", colour_features=True,
+                              colour_word_dropout=1.0)
+    features, _ = policy.instruction_encoder.encode(["press the red button, then the navy one"])
+    dropped = drop_colour_words(features, 1.0)
+    colour = features[0, :, -1] > 0
+    assert colour.sum() == 2 and not dropped[0, colour, :384].any()
+    assert torch.equal(dropped[0, colour, 384:], features[0, colour, 384:])  # the coordinates stay
+    assert torch.equal(dropped[0, ~colour], features[0, ~colour])  # every other token unchanged
+    assert torch.equal(drop_colour_words(features, 0.0), features)
+    policy.eval()
+    kept, _ = policy._encode_instructions(["press the red button, then the navy one"], torch.device("cpu"))
+    assert torch.equal(kept, features)
+    policy.train()
+    trained, _ = policy._encode_instructions(["press the red button, then the navy one"], torch.device("cpu"))
+    assert torch.equal(trained, dropped)
+    assert math.isfinite(policy.forward(history_batch(tiny_dataset_root, policy.config, [2]))[0].item())
+    for wrong in ({"colour_word_dropout": 1.5, "colour_features": True}, {"colour_word_dropout": 0.5}):
+        with pytest.raises(ValueError, match="colour_word_dropout must be in"):
+            HiveformerConfig(text_encoder="minilm_words", device="cpu", **wrong)
 
 
 def test_measure_compute_times_each_part_of_every_rollout_step(tiny_dataset_root):

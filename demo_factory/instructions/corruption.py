@@ -31,7 +31,7 @@ COLOUR_SYNONYMS: dict[str, str] = {
     "teal": "petrol",
     "azure": "cerulean",
     "violet": "indigo",
-    "rose": "pink",
+    "rose": "cerise",
     "black": "ebony",
     "white": "ivory",
 }

@@ -37,6 +37,7 @@ COLOUR_NAMES: dict[str, tuple[str, ...]] = {
     "orange": ("amber",),
     "silver": ("light grey", "light gray"),
     "gray": ("grey",),
+    "rose": ("pink",),  # the name most of the authors' human sentences give it
 }
 # Words and phrases of the held-out phrasings that no grammar sentence uses.
 HELD_OUT_MARKERS = ("activate", "depress", "followed by", "afterwards", "lastly", "comes first", "wrap up",

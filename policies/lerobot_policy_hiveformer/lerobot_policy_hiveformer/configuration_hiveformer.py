@@ -104,9 +104,13 @@ class HiveformerConfig(PreTrainedConfig):
     # Local directory with a copy of that model (config.json + weights); takes precedence over the Hub.
     text_encoder_path: str | None = None
     # With "minilm" or "minilm_words": the tokens of a colour name (a table of ~1,100 names, `colour_names.py`)
-    # carry that colour's CIELAB coordinates in place of their text features, so that a colour word never seen in
+    # carry that colour's CIELAB coordinates beside their text features, so that a colour word never seen in
     # training ("scarlet") still says which colour it means. Needs matplotlib (the `minilm` extra).
     colour_features: bool = False
+    # Training only, with `colour_features`: the probability that a colour token's text features are zeroed in a
+    # sample, leaving its CIELAB coordinates, so that the policy learns to find a colour by its coordinates too
+    # and not only by the few colour words of the training instructions.
+    colour_word_dropout: float = 0.0
     # Ablation: False averages the instruction's token features into a single token.
     instruction_as_sequence: bool = True
     # Learned position embeddings on the instruction tokens, as the authors': token order is what tells
@@ -234,6 +238,9 @@ class HiveformerConfig(PreTrainedConfig):
             )
         if self.colour_features and self.text_encoder not in MINILM_ENCODERS:
             raise ValueError(f"colour_features needs text_encoder minilm or minilm_words; got {self.text_encoder!r}.")
+        if not 0.0 <= self.colour_word_dropout <= 1.0 or (self.colour_word_dropout and not self.colour_features):
+            raise ValueError(f"colour_word_dropout must be in [0, 1], and 0 unless colour_features; got "
+                             f"{self.colour_word_dropout} with colour_features={self.colour_features}.")
         if self.lr_schedule not in LR_SCHEDULES:
             raise ValueError(f"lr_schedule must be one of {', '.join(LR_SCHEDULES)}; got {self.lr_schedule!r}.")
         if self.lr_warmup_steps < 0 or (self.lr_warmup_steps and self.lr_schedule != "cosine"):

@@ -27,7 +27,7 @@ from .configuration_hiveformer import ENCODER_STRIDE, HiveformerConfig
 from .dataset_format import GRIPPER_STATE_DIM
 from .observations import KeyframeObservations, keyframe_observations, take_steps
 from .operations import PYTORCH, Operations, operations
-from .text_encoders import CLIP_CONTEXT_LENGTH, InstructionEncoder, make_instruction_encoder
+from .text_encoders import CLIP_CONTEXT_LENGTH, COLOUR_FEATURES, InstructionEncoder, make_instruction_encoder
 from .unet import ENCODER_CHANNELS, LEAKY_SLOPE, ConvBlock, UNetDecoder, UNetEncoder
 
 # --- Policy ---------------------------------------------------------------------------------------
@@ -81,6 +81,8 @@ class HiveformerPolicy(PreTrainedPolicy):
 
     def _encode_instructions(self, instructions: list[str], device: torch.device) -> tuple[Tensor, Tensor]:
         features, mask = self.instruction_encoder.encode(instructions)
+        if self.training and self.config.colour_word_dropout:
+            features = drop_colour_words(features, self.config.colour_word_dropout)
         if not self.config.instruction_as_sequence:
             weights = mask.unsqueeze(-1).to(features.dtype)
             features = (features * weights).sum(1, keepdim=True) / weights.sum(1, keepdim=True)
@@ -238,6 +240,15 @@ def quaternion_loss(predicted: Tensor, target: Tensor) -> Tensor:
     direct = ((predicted - target) ** 2).sum(-1)
     flipped = ((predicted + target) ** 2).sum(-1)
     return torch.minimum(direct, flipped)
+
+
+def drop_colour_words(features: Tensor, probability: float) -> Tensor:
+    """(B, L, D + 4) instruction features with `colour_features` -> the same with each colour token's text
+    features (all but its last 4, the CIELAB coordinates and flag) zeroed with ``probability``."""
+    colour_token = features[..., -1] > 0  # the flag
+    dropped = colour_token & (torch.rand(colour_token.shape, device=features.device) < probability)
+    text = features[..., :-COLOUR_FEATURES].masked_fill(dropped.unsqueeze(-1), 0.0)
+    return torch.cat([text, features[..., -COLOUR_FEATURES:]], dim=-1)
 
 
 # --- Network --------------------------------------------------------------------------------------

@@ -77,9 +77,9 @@ class ClipInstructionEncoder(InstructionEncoder):
 class PretrainedTransformerInstructionEncoder(InstructionEncoder):
     """Frozen pretrained BERT-style text encoder loaded from a local directory; per-token last hidden
     states of the real tokens (CLS and SEP included), or with `words_only` its word-piece input embeddings,
-    which carry no context. With `colour_features` each token gets 4 more features: the scaled CIELAB coordinates
-    of the colour name it is part of and a 1 (`colour_names`), its text features zeroed, so that the policy knows a
-    colour word by its colour alone; 0s elsewhere."""
+    which carry no context. With `colour_features` each token gets 4 more features beside its text features: the
+    scaled CIELAB coordinates of the colour name it is part of and a 1 (`colour_names`), 0s elsewhere, so that a
+    colour word never seen in training still says which colour it means."""
 
     def __init__(self, model_dir: Path, words_only: bool = False, colour_features: bool = False):
         super().__init__()
@@ -112,15 +112,13 @@ COLOUR_FEATURES = 4  # CIELAB's L, a, b and a flag
 
 def with_colours(features: Tensor, text: str, offsets: Tensor) -> Tensor:
     """(L, D) text features -> (L, D + 4): the tokens inside a colour name of ``text`` (character ``offsets`` of
-    each token, (0, 0) for special ones) carry its coordinates and a 1 in place of their text features."""
+    each token, (0, 0) for special ones) carry its coordinates and a 1 beside their text features."""
     from .colour_names import colour_spans
 
     first, last = offsets[: len(features)].unbind(dim=1)
-    features = features.clone()
     colours = torch.zeros(features.shape[0], COLOUR_FEATURES)
     for start, end, lab in colour_spans(text):
         inside = (first >= start) & (last <= end) & (last > first)
-        features[inside] = 0.0
         colours[inside] = torch.tensor([*lab, 1.0])
     return torch.cat([features, colours], dim=1)
 
