@@ -353,7 +353,7 @@ def convert(options: ConvertOptions, log: Callable[[str], None] = print) -> Conv
         elif name == "test_unseen_human" and any(s.split == "test" for s in found.sources):
             why = f"no row of {human_file} names a test variation that has recordings"
         elif name == "test_unseen_paraphrased" and any(s.split == "test" for s in found.sources):
-            why = f"{' and '.join(found.tasks)} {'has' if len(found.tasks) == 1 else 'have'} no held-out phrasings"
+            why = f"{', '.join(found.tasks)}: no held-out phrasings"
         elif name == "val" and plans["train"].episodes:
             why = "--val-ratio 0 or a single train episode"
         elif name in ("train", "val"):
