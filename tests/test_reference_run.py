@@ -278,6 +278,15 @@ def test_each_run_has_a_folder_of_its_own_by_default(argv, folder):
     assert default_out(parse_arguments(argv)) == Path("outputs") / folder
 
 
+def test_beyond_ten_tasks_defaults_to_its_measured_steps():
+    from demo_factory.tools.reference_run import SUITE, parse_arguments
+
+    beyond = parse_arguments(["--suite", "beyond_ten_tasks"])  # make reference-suite SUITE=beyond_ten_tasks
+    assert (beyond.steps, beyond.curve) == (4000, 2)
+    assert parse_arguments(["--suite", "ten_tasks"]).steps == SUITE["steps"]
+    assert parse_arguments(["--suite", "beyond_ten_tasks", "--steps", "6000"]).steps == 6000
+
+
 def test_tower_unseen_is_the_unseen_chain_on_towers_paper_variations(tmp_path):
     from demo_factory.tools.reference_run import (UNSEEN, UNSEEN_RECIPE, generate_test_command, hiveformer_run_command,
                                                   parse_arguments, policy_flags)
