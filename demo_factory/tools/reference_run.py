@@ -142,7 +142,8 @@ SUITE = {"episodes_per_variation": 50, "steps": MULTI_TASK_STEPS, "curve": 4, "e
          "validation_episodes": 10}
 SUITE_RECIPE = MULTI_TASK_RECIPE | {"cpu_kernels": True}
 # beyond_ten_tasks: its history of 25 keyframes makes a training step ~0.6 s, so 12,000 steps would take over two
-# hours; at 4,000 (validated at 2,000 and 4,000) the chain takes ~52 minutes and averages 76.9 % (docs/reference/suite.md).
+# hours; at 4,000 (validated at 2,000 and 4,000) the chain takes ~52 minutes and averages 76.9 %
+# (docs/reference/suite.md).
 SUITE_STEPS = {"beyond_ten_tasks": {"steps": 4000, "curve": 2}}
 DENSE_FPS = 20  # the dense export's control rate (ACT)
 RESUME_EVERY = 500  # training steps between checkpoints at most: what an interrupted run can lose
