@@ -210,6 +210,20 @@ def test_randomised_runs_perturb_every_training_generation_and_nothing_else():
     assert "--perturb" not in train_generation_command(parse_arguments([]), ["2"], 2)
 
 
+def test_make_reference_randomised_is_the_measured_recipe():
+    import re
+    import shlex
+
+    from demo_factory.tools.reference_run import parse_arguments
+
+    makefile = (Path(__file__).resolve().parents[1] / "Makefile").read_text().replace("\\\n", " ")
+    recipe = re.search(r"^reference-randomised:.*\n\t(.*)$", makefile, re.MULTILINE).group(1)
+    args = parse_arguments(shlex.split(recipe.split("demo_factory.tools.reference_run", 1)[1]))
+    # docs/robustness.md: visual factors at p 0.5 on 360 episodes, 3000 steps, evaluated under every factor
+    assert (args.perturb, args.robustness, args.steps) == ("visual=0.5", True, 3000)
+    assert (args.episodes_per_variation, args.extra_episodes, len(args.variations)) == (80, 120, 3)
+
+
 def test_checkpoints_are_saved_at_every_curve_point_and_at_most_500_steps_apart():
     from demo_factory.tools.reference_run import save_interval
 
