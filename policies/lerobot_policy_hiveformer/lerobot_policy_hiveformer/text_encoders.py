@@ -75,15 +75,19 @@ class ClipInstructionEncoder(InstructionEncoder):
 
 
 class PretrainedTransformerInstructionEncoder(InstructionEncoder):
-    """Frozen pretrained BERT-style text encoder loaded from a local directory; per-token last hidden
-    states of the real tokens (CLS and SEP included), or with `words_only` its word-piece input embeddings,
-    which carry no context. With `colour_features` each token gets 4 more features beside its text features: the
-    scaled CIELAB coordinates of the colour name it is part of and a 1 (`colour_names`), 0s elsewhere, so that a
-    colour word never seen in training still says which colour it means."""
+    """Frozen pretrained BERT-style text encoder loaded from a local directory; per-token last hidden states of
+    the real tokens (CLS and SEP included). With `causal` each token attends only to itself and the tokens before
+    it, as in CLIP's text transformer: its features carry its left context and nothing of the words after it.
+    With `words_only` its word-piece input embeddings, which carry no context. With `colour_features` each token
+    gets 4 more features beside its text features: the scaled CIELAB coordinates of the colour name it is part of
+    and a 1 (`colour_names`), 0s elsewhere, so that a colour word never seen in training still says which colour
+    it means."""
 
-    def __init__(self, model_dir: Path, words_only: bool = False, colour_features: bool = False):
+    def __init__(self, model_dir: Path, words_only: bool = False, causal: bool = False,
+                 colour_features: bool = False):
         super().__init__()
         self.words_only = words_only
+        self.causal = causal
         self.colour_features = colour_features
         from transformers import AutoTokenizer
 
@@ -98,6 +102,10 @@ class PretrainedTransformerInstructionEncoder(InstructionEncoder):
         offsets = tokens.pop("offset_mapping", None)
         if self.words_only:
             hidden = self.text_model.get_input_embeddings()(tokens["input_ids"])
+        elif self.causal:  # a prepared 4-D mask goes to the attention as it is: (N, 1, L, L), True = attend
+            n = tokens["input_ids"].shape[1]
+            left = torch.ones(n, n, dtype=torch.bool).tril() & tokens["attention_mask"].bool()[:, None, :]
+            hidden = self.text_model(input_ids=tokens["input_ids"], attention_mask=left[:, None]).last_hidden_state
         else:
             hidden = self.text_model(**tokens).last_hidden_state
         lengths = tokens["attention_mask"].sum(dim=1).tolist()
@@ -231,8 +239,8 @@ def make_instruction_encoder(config: HiveformerConfig) -> InstructionEncoder:
     if config.text_encoder == "clip_tiny_random":
         return ClipInstructionEncoder(tiny_random_clip_text_model())
     if config.text_encoder in MINILM_ENCODERS:
-        words_only = config.text_encoder == "minilm_words"
-        return PretrainedTransformerInstructionEncoder(minilm_model_dir(), words_only=words_only,
-                                                       colour_features=config.colour_features)
+        return PretrainedTransformerInstructionEncoder(
+            minilm_model_dir(), words_only=config.text_encoder == "minilm_words",
+            causal=config.text_encoder == "minilm_causal", colour_features=config.colour_features)
     return OneHotInstructionEncoder(config.instruction_vocabulary)
 
