@@ -97,7 +97,7 @@ def read_runs(path: Path = RUNS) -> list[dict[str, str]]:
 def _figures(rows: list[dict[str, str]], column: str) -> str:
     """One split's figures over the seeds, `90 / 80 / 92.5`; `—` where a run did not measure it."""
     values = [row[column] for row in rows]
-    return " / ".join(f"{float(v):g}" for v in values) if any(values) else "—"
+    return " / ".join(f"{float(v):g}" if v else "—" for v in values) if any(values) else "—"
 
 
 def _span(values: list[str]) -> str:
