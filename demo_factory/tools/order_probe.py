@@ -54,18 +54,18 @@ def colour_tokens(tokenizer, sentences: list[tuple[str, list]]) -> list[tuple[in
     return rows
 
 
-def features(encoder_name: str, sentences: list[tuple[str, list]], rows, width: int = 64) -> torch.Tensor:
+def features(encoder_name: str, sets: dict[str, list[tuple[str, list]]], rows: dict[str, list],
+             width: int = 64) -> dict[str, torch.Tensor]:
+    """Each set's colour-word features: the encoder's token features, or the one-hot token index (``position``)."""
     if encoder_name == "position":
-        return torch.nn.functional.one_hot(torch.tensor([min(k, width - 1) for _, k, _ in rows]), width).float()
-    encoded = encoder(encoder_name)._encode_new([s for s, _ in sentences])
-    return torch.stack([encoded[i][k] for i, k, _ in rows])
-
-
-def encoder(name: str):
+        return {name: torch.nn.functional.one_hot(torch.tensor([min(k, width - 1) for _, k, _ in r]), width).float()
+                for name, r in rows.items()}
     from lerobot_policy_hiveformer.text_encoders import PretrainedTransformerInstructionEncoder, minilm_model_dir
 
-    return PretrainedTransformerInstructionEncoder(minilm_model_dir(), words_only=name == "minilm_words",
-                                                   causal=name == "minilm_causal")
+    encoder = PretrainedTransformerInstructionEncoder(minilm_model_dir(), words_only=encoder_name == "minilm_words",
+                                                      causal=encoder_name == "minilm_causal")
+    encoded = {name: encoder._encode_new([s for s, _ in items]) for name, items in sets.items()}
+    return {name: torch.stack([encoded[name][i][k] for i, k, _ in r]) for name, r in rows.items()}
 
 
 def fit_probe(x: torch.Tensor, y: torch.Tensor, classes: int, weight_decay: float = 1e-3) -> torch.nn.Linear:
@@ -109,7 +109,7 @@ def probe_table(task_name: str, encoders: Sequence[str]) -> list[dict]:
     table = [{"encoder": "commonest press", **{name: float((y == torch.mode(labels["train"]).values).float().mean())
                                                for name, y in labels.items()}}]
     for name in encoders:
-        x = {s: features(name, sets[s], rows[s]) for s in sets}
+        x = features(name, sets, rows)
         mean, std = x["train"].mean(0), x["train"].std(0) + 1e-6
         probe = fit_probe((x["train"] - mean) / std, labels["train"], classes)
         with torch.no_grad():
@@ -129,7 +129,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = parser.parse_args(argv)
     table = probe_table(args.task, args.encoder or ENCODERS)
     counts = table[0]["colour words"]
-    print(f"{args.task}: which press a colour word names, from its token features (colour words: "
+    print(f"{args.task}: which step of the sequence (press, cube) a colour word names, from its features (colour words: "
           + ", ".join(f"{name} {n}" for name, n in counts.items()) + ")")
     print("| encoder | " + " | ".join(counts) + " |\n|---|" + "---|" * len(counts))
     for row in table:
