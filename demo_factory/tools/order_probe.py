@@ -129,8 +129,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = parser.parse_args(argv)
     table = probe_table(args.task, args.encoder or ENCODERS)
     counts = table[0]["colour words"]
-    print(f"{args.task}: which step of the sequence (press, cube) a colour word names, from its features (colour words: "
-          + ", ".join(f"{name} {n}" for name, n in counts.items()) + ")")
+    print(f"{args.task}: which step of the sequence (press, cube) a colour word names, from its features "
+          "(colour words: " + ", ".join(f"{name} {n}" for name, n in counts.items()) + ")")
     print("| encoder | " + " | ".join(counts) + " |\n|---|" + "---|" * len(counts))
     for row in table:
         print(f"| {row['encoder']} | " + " | ".join(f"{100 * row[name]:.1f}" for name in counts) + " |")
