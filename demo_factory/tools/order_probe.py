@@ -7,7 +7,7 @@ fits a multinomial logistic regression from a colour word's token features to it
 training sentences of the task's train variations (its templates and grammar, `Task.paraphrases`) and scores it on
 sentence shapes it never saw: the held-out phrasings and the paper authors' human-written sentences of the test
 variations (those whose every colour is named by a palette or grammar colour name). Each encoder is the plugin's,
-as a policy gets it; ``position`` is the token's index alone. Seconds on a CPU, no training run.
+as a policy gets it; ``position`` is the token's index alone. About two minutes on a CPU, no training run.
 """
 
 from __future__ import annotations
