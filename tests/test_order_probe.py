@@ -2,7 +2,9 @@
 
 import pytest
 
-from demo_factory.tools.order_probe import colour_mentions, main, probe_table
+from demo_factory.instructions import COLOUR_SYNONYMS
+from demo_factory.tasks.palette import COLOURS
+from demo_factory.tools.order_probe import colour_mentions, main, probe_table, sentence_sets
 
 
 def test_colour_mentions_label_each_colour_with_its_press_wherever_it_stands():
@@ -24,3 +26,13 @@ def test_order_probe_rejects_an_unknown_encoder(capsys):
     with pytest.raises(SystemExit) as exit_info:
         main(["--encoder", "bert"])
     assert exit_info.value.code == 2 and "invalid choice: 'bert'" in capsys.readouterr().err
+
+
+def test_colour_target_labels_the_corrupted_splits_renamed_colours_with_their_palette_colour():
+    sets = sentence_sets("push_buttons", "colour")
+    sentence, mentions = sets["corrupted"][0]
+    assert set(sets) == {"train", "held-out phrasings", "corrupted", "human"} and len(sets["corrupted"]) > 100
+    renamed = {COLOUR_SYNONYMS[name]: i for i, name in enumerate(COLOURS)}
+    assert [renamed[sentence[a:b].lower()] for a, b, _ in mentions] == [label for *_, label in mentions]
+    trained = {label for _, m in sets["train"] for *_, label in m}
+    assert {label for _, m in sets["corrupted"] for *_, label in m} <= trained

@@ -1,13 +1,15 @@
-"""Which instruction encoder says the order? A linear probe on the colour words' token features.
+"""Which instruction encoder says the order, and the colour? A linear probe on the colour words' token features.
 
-    python -m demo_factory.tools.order_probe [--task push_buttons] [--encoder minilm_causal ...]
+    python -m demo_factory.tools.order_probe [--task push_buttons] [--target order|colour] [--encoder minilm_causal ...]
 
-A policy follows "press red, then blue" only if the features of each colour word tell which press it names. This
-fits a multinomial logistic regression from a colour word's token features to its press (1st, 2nd, 3rd) on the
-training sentences of the task's train variations (its templates and grammar, `Task.paraphrases`) and scores it on
-sentence shapes it never saw: the held-out phrasings and the paper authors' human-written sentences of the test
-variations (those whose every colour is named by a palette or grammar colour name). Each encoder is the plugin's,
-as a policy gets it; ``position`` is the token's index alone. About two minutes on a CPU, no training run.
+A policy follows "press red, then blue" only if the features of each colour word tell which press it names, and
+follows "press scarlet" only if they tell the colour. This fits a multinomial logistic regression from a colour
+word's token features to its press (1st, 2nd, 3rd; ``--target order``) or to its palette colour (``--target colour``)
+on the training sentences of the task's train variations (its templates and grammar, `Task.paraphrases`) and scores
+it on sentences it never saw: the held-out phrasings, the test variations' templates with their colours renamed (the
+corrupted split's sentences) and the paper authors' human-written sentences of the test variations (those whose
+every colour is named by a palette or grammar colour name). Each encoder is the plugin's, as a policy gets it;
+``position`` is the token's index alone. About two minutes on a CPU, no training run.
 """
 
 from __future__ import annotations
@@ -18,11 +20,14 @@ from collections.abc import Sequence
 
 import torch
 
-from demo_factory.instructions import load_human_instructions, shipped_human_instructions
+from demo_factory.instructions import (COLOUR_SYNONYMS, corrupt_instruction, load_human_instructions,
+                                       shipped_human_instructions)
 from demo_factory.tasks.grammar import COLOUR_NAMES
+from demo_factory.tasks.palette import COLOURS, canonical_colour
 from demo_factory.tasks.registry import TASKS
 
 ENCODERS = ("minilm", "minilm_causal", "minilm_words", "position")
+TARGETS = {"order": "press", "colour": "colour"}
 PAPER_TASKS = tuple(name for name, task in TASKS.items() if task.paper_numbering is not None)
 
 
@@ -84,29 +89,41 @@ def fit_probe(x: torch.Tensor, y: torch.Tensor, classes: int, weight_decay: floa
     return probe
 
 
-def sentence_sets(task_name: str) -> dict[str, list[tuple[str, list]]]:
+def sentence_sets(task_name: str, target: str = "order") -> dict[str, list[tuple[str, list]]]:
+    """Each set's sentences with their colour mentions, labelled by the press (``order``) or by the palette colour
+    (``colour``). The corrupted set is the test variations' templates with their colours renamed, as the
+    ``test_unseen_corrupted`` split's. The order target trains on the variations of more than one colour."""
     task = TASKS[task_name]()
-    several = [v for v in task.splits["train"] if len(v.words) > 1]
-    test = {v.id: v for v in task.splits["test"] if len(v.words) > 1}
+    train = [v for v in task.splits["train"] if target == "colour" or len(v.words) > 1]
+    test = {v.id: v for v in task.splits["test"] if target == "colour" or len(v.words) > 1}
     human = [(row.instruction, row.words) for row in load_human_instructions(shipped_human_instructions(task_name))
              if row.task == task_name and row.variation_id in test]
-    sets = {"train": [(s, v.words) for v in several for s in task.paraphrases(v)],
-            "held-out phrasings": [(s, v.words) for v in test.values() for s in task.held_out_phrasings(v)],
-            "human": human}
-    return {name: [(s, m) for s, words in items if (m := colour_mentions(s, words))] for name, items in sets.items()}
+    synonyms = {name: COLOUR_SYNONYMS[canonical_colour(name)] for v in test.values() for name in v.words}
+    sets = {"train": [(s, v.words, v.words) for v in train for s in task.paraphrases(v)],
+            "held-out phrasings": [(s, v.words, v.words) for v in test.values() for s in task.held_out_phrasings(v)],
+            "corrupted": [(corrupt_instruction(s), [synonyms[w] for w in v.words], v.words)
+                          for v in test.values() for s in task.synthetic_instructions(v)],
+            "human": [(s, words, words) for s, words in human]}
+    colour_ids = {name: i for i, name in enumerate(COLOURS)}
+
+    def label(press: int, words: Sequence[str]) -> int:
+        return press if target == "order" else colour_ids[canonical_colour(words[press])]
+
+    return {name: [(s, [(a, b, label(p, words)) for a, b, p in m]) for s, names, words in items
+                   if (m := colour_mentions(s, names))] for name, items in sets.items()}
 
 
-def probe_table(task_name: str, encoders: Sequence[str]) -> list[dict]:
-    """Per encoder, the probe's accuracy on each sentence set, and the share of the commonest press (the baseline)."""
+def probe_table(task_name: str, encoders: Sequence[str], target: str = "order") -> list[dict]:
+    """Per encoder, the probe's accuracy on each sentence set, and the share of the commonest label (the baseline)."""
     from lerobot_policy_hiveformer.text_encoders import minilm_model_dir
     from transformers import AutoTokenizer
 
     tokenizer = AutoTokenizer.from_pretrained(minilm_model_dir(), local_files_only=True)
-    sets = sentence_sets(task_name)
+    sets = sentence_sets(task_name, target)
     rows = {name: colour_tokens(tokenizer, items) for name, items in sets.items()}
     labels = {name: torch.tensor([p for *_, p in r]) for name, r in rows.items()}
     classes = int(labels["train"].max()) + 1
-    table = [{"encoder": "commonest press", **{name: float((y == torch.mode(labels["train"]).values).float().mean())
+    table = [{"encoder": f"commonest {TARGETS[target]}", **{name: float((y == torch.mode(labels["train"]).values).float().mean())
                                                for name, y in labels.items()}}]
     for name in encoders:
         x = features(name, sets, rows)
@@ -124,12 +141,16 @@ def main(argv: Sequence[str] | None = None) -> int:
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--task", default="push_buttons", choices=PAPER_TASKS,
                         help="a task with the paper's variations and human sentences (default: push_buttons)")
+    parser.add_argument("--target", default="order", choices=TARGETS,
+                        help="what the probe reads from a colour word: its step in the sequence (order) or its palette "
+                             "colour (colour: can a renamed colour of the corrupted split be told?) (default: order)")
     parser.add_argument("--encoder", action="append", choices=ENCODERS,
                         help=f"repeatable (default: all: {', '.join(ENCODERS)})")
     args = parser.parse_args(argv)
-    table = probe_table(args.task, args.encoder or ENCODERS)
+    table = probe_table(args.task, args.encoder or ENCODERS, args.target)
     counts = table[0]["colour words"]
-    print(f"{args.task}: which step of the sequence (press, cube) a colour word names, from its features "
+    question = "which step of the sequence (press, cube)" if args.target == "order" else "which palette colour"
+    print(f"{args.task}: {question} a colour word names, from its features "
           "(colour words: " + ", ".join(f"{name} {n}" for name, n in counts.items()) + ")")
     print("| encoder | " + " | ".join(counts) + " |\n|---|" + "---|" * len(counts))
     for row in table:
