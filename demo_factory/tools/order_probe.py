@@ -123,8 +123,9 @@ def probe_table(task_name: str, encoders: Sequence[str], target: str = "order") 
     rows = {name: colour_tokens(tokenizer, items) for name, items in sets.items()}
     labels = {name: torch.tensor([p for *_, p in r]) for name, r in rows.items()}
     classes = int(labels["train"].max()) + 1
-    table = [{"encoder": f"commonest {TARGETS[target]}", **{name: float((y == torch.mode(labels["train"]).values).float().mean())
-                                               for name, y in labels.items()}}]
+    commonest = torch.mode(labels["train"]).values
+    table = [{"encoder": f"commonest {TARGETS[target]}",
+              **{name: float((y == commonest).float().mean()) for name, y in labels.items()}}]
     for name in encoders:
         x = features(name, sets, rows)
         mean, std = x["train"].mean(0), x["train"].std(0) + 1e-6
