@@ -217,7 +217,7 @@ def test_card_lists_splits_features_and_how_to_train(converted):
     assert "sentences from `human.jsonl`, a file supplied at conversion (`--human-instructions`): 4 sentences" in words
     assert "lerobot-train --policy.type=hiveformer" in card  # keyframes; ACT needs a dense export (test_dense)
     # Unseen splits are for new instructions: the suggested encoder is the pretrained one that carries to them.
-    assert "--policy.text_encoder=minilm_words" in card and "MiniLM sentence encoder's word-piece embeddings" in words
+    assert "--policy.text_encoder=minilm_causal" in card and "MiniLM sentence encoder's left-context token features" in words
     assert "guhur2022hiveformer" in card and "james2020rlbench" in card and "cadene2024lerobot" in card
     assert "planned transition: mean 2.00, max 3" in words
 
@@ -281,7 +281,7 @@ def test_overwrite_replaces_and_dense_granularity_uses_dense_frames(tmp_path, wr
     assert human.num_episodes == 1  # the first test variation (100) has one row in annotations.json
 
 
-@pytest.mark.parametrize("unseen, encoder", [(True, "minilm_words"), (False, "one_hot")])
+@pytest.mark.parametrize("unseen, encoder", [(True, "minilm_causal"), (False, "one_hot")])
 def test_suggested_hiveformer_encoder_follows_the_splits(unseen, encoder):
     args = train_args("keyframe", "me/pb_train", Path("pb/train"), CAMERAS, SIZE, 10, 4, unseen_splits=unseen)
     assert f"--policy.text_encoder={encoder}" in args

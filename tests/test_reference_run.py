@@ -28,7 +28,7 @@ def test_unseen_reference_run_trains_on_paper_train_ids_and_curves_the_unseen_sp
     assert main(arguments) == 0
     summary = json.loads((out / "reference_run.json").read_text())
     configuration = summary["configuration"]
-    assert configuration["variations"] == ["0", "1"] and configuration["text_encoder"] == "minilm_words"
+    assert configuration["variations"] == ["0", "1"] and configuration["text_encoder"] == "minilm_causal"
     assert set(summary["stage_seconds"]) >= {"generate_train", "generate_test", "convert", "train", "eval"}
     checkpoint = out / "train" / "checkpoints" / "last" / "pretrained_model"
     assert json.loads((checkpoint / "train_config.json").read_text())["seed"] == 3
@@ -37,7 +37,7 @@ def test_unseen_reference_run_trains_on_paper_train_ids_and_curves_the_unseen_sp
     assert config["instruction_position_embeddings"] is True and config["optimizer_lr"] == 2e-3
     assert config["lr_schedule"] == "constant_then_cosine" and config["heatmap_loss_weight"] == 0.1
     assert json.loads((checkpoint / "train_config.json").read_text())["scheduler"]["type"] == "constant_then_cosine"
-    assert config["text_encoder"] == "minilm_words" and config["n_history"] == 10
+    assert config["text_encoder"] == "minilm_causal" and config["n_history"] == 10
     splits = summary["results"]["splits"]
     assert {"train", "test_unseen_synthetic", "test_unseen_corrupted", "test_unseen_human"} <= set(splits)
     # The test episodes are those of the variations the human-written sentences name, with those sentences.
@@ -241,7 +241,7 @@ def test_unseen_runs_take_the_paper_train_ids_asked_and_say_which_test_ones_they
 
     default = parse_arguments(["--unseen"])  # every paper train id, 6 episodes each
     assert default.variations == [str(i) for i in range(100)] and default.episodes_per_variation == 6
-    assert (default.steps, default.text_encoder) == (8000, "minilm_words")
+    assert (default.steps, default.text_encoder) == (8000, "minilm_causal")
     assert parse_arguments(["--unseen", "--train-variations", "3"]).variations == ["0", "1", "2"]
     named = parse_arguments(["--unseen", "--variation", "0", "--variation", "2"])
     assert named.variations == ["0", "2"] and named.train_variations is None

