@@ -22,7 +22,7 @@ into its own folder under --out and is skipped when that folder is complete, so 
 where it stopped; the training itself resumes from its last checkpoint (`lerobot-train --resume=true`; one
 at least every 500 steps).
 With `--unseen` the run is built to show instructions followed that were never seen: the paper's train
-variations 0-99 (6 episodes each), pretrained MiniLM's context-free word-piece instruction features, windows
+variations 0-99 (6 episodes each), pretrained MiniLM run with a causal mask (`minilm_causal`), windows
 as `make reference` with the authors' 4-channel CNN stem, the test episodes on the paper's test variations that
 the authors' human-written sentences name, and a learning curve of both the seen and the unseen-synthetic success
 (push_buttons, or tower with `--task tower`); `--ablation NAME` takes one part of the model out of that run.
@@ -356,7 +356,7 @@ def parse_arguments(argv=None) -> argparse.Namespace:
     parser.add_argument("--unseen", action="store_true", help="push_buttons (or --task tower: `make "
                         "reference-tower-unseen`) built to follow unseen instructions: "
                         f"the paper's train variations 0-99, {UNSEEN['episodes_per_variation']} episodes each, MiniLM's "
-                        f"left-context instruction features, {UNSEEN['steps']} steps at a learning rate of "
+                        f"`{UNSEEN['text_encoder']}` instruction features, {UNSEEN['steps']} steps at a learning rate of "
                         f"{UNSEEN_RECIPE['optimizer_lr']:g} annealed to 0 over the last 3/8 with the pixel attention's "
                         f"cross-entropy beside the position loss, a learning curve of {UNSEEN['curve']} checkpoints, seen and "
                         "unseen-synthetic success; test episodes on the test variations of the authors' human sentences")
